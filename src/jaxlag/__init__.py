@@ -1,0 +1,28 @@
+"""jaxlag: differentiable Lagrangian mechanics in JAX.
+
+Write ``L(q, q̇)``; get the mass matrix, forces, constrained accelerations, multipliers and a
+compiled, differentiable diffrax simulation. Sign convention everywhere:
+``d/dt ∂L/∂q̇ − ∂L/∂q = Jᵀλ + Aᵀμ − ∂R/∂q̇ + Q``, i.e. ``M q̈ = F + Jᵀλ + Aᵀμ``.
+"""
+
+from .conventions import UserFunction
+from .kkt import solve_kkt
+from .simulate import EquationsOfMotion, simulate
+from .stabilization import Baumgarte, Projection, ProjectedSolver, consistent_initial_state
+from .system import System
+from .trajectory import Trajectory
+
+__all__ = [
+    "Baumgarte",
+    "EquationsOfMotion",
+    "Projection",
+    "ProjectedSolver",
+    "System",
+    "Trajectory",
+    "UserFunction",
+    "consistent_initial_state",
+    "simulate",
+    "solve_kkt",
+]
+
+__version__ = "0.1.0"

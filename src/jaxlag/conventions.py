@@ -1,0 +1,115 @@
+"""The one calling convention for every user-supplied function.
+
+jaxlag passes the state positionally and the rest by keyword:
+
+* functions of the full state -- the Lagrangian ``L``, a Rayleigh dissipation function ``R``,
+  external generalized forces ``Q`` -- are called as ``fn(q, qd, t=t, args=args)``;
+* functions of the configuration only -- holonomic constraints ``f``, Pfaffian ``A`` and ``b`` --
+  are called as ``fn(q, t=t, args=args)``.
+
+``t`` and ``args`` are passed only when the function declares a parameter of that name (or
+``**kwargs``), so ``def L(q, qd)``, ``def L(q, qd, args)``, ``def L(q, qd, t)`` and
+``def L(q, qd, t, args)`` all work without ceremony. ``args`` is any pytree of parameters:
+``jax.grad`` and ``jax.vmap`` flow through it. Closures over traced values work too.
+
+The signature is read once, when the function is wrapped, with :func:`inspect.signature`.
+"""
+
+from __future__ import annotations
+
+import inspect
+from typing import Any, Callable
+
+import equinox as eqx
+
+_EXTRA_NAMES = ("t", "args")
+
+
+def _parse_signature(fn: Callable, n_state: int, role: str) -> tuple[bool, bool]:
+    """Return ``(takes_t, takes_args)`` for ``fn`` called with ``n_state`` positional arguments."""
+    try:
+        signature = inspect.signature(fn)
+    except (TypeError, ValueError):
+        # Builtins and some C callables have no signature: assume the bare state form.
+        return False, False
+    positional = [
+        p
+        for p in signature.parameters.values()
+        if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
+    ]
+    has_var_positional = any(p.kind == p.VAR_POSITIONAL for p in signature.parameters.values())
+    has_var_keyword = any(p.kind == p.VAR_KEYWORD for p in signature.parameters.values())
+    state_names = "q, qd" if n_state == 2 else "q"
+    if positional and positional[0].name == "t":
+        raise TypeError(
+            f"The {role} {fn!r} takes `t` as its first parameter. jaxlag's convention passes the "
+            f"state first: write it as `{role}({state_names}, t, args)` (t and args are optional "
+            "and passed by keyword)."
+        )
+    if len(positional) < n_state and not has_var_positional:
+        raise TypeError(
+            f"The {role} {fn!r} must accept {n_state} positional argument(s) ({state_names}); "
+            f"its signature is {signature}."
+        )
+    state_params = positional[:n_state]
+    rest = [p for p in signature.parameters.values() if p not in state_params]
+    takes = {name: has_var_keyword for name in _EXTRA_NAMES}
+    for p in rest:
+        if p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD):
+            continue
+        if p.name in _EXTRA_NAMES:
+            takes[p.name] = True
+        elif p.default is p.empty:
+            raise TypeError(
+                f"The {role} {fn!r} has a required parameter `{p.name}` that jaxlag cannot fill. "
+                f"jaxlag calls it as `{role}({state_names}, t=t, args=args)`, passing `t` and `args` "
+                "only if declared; put your parameters in `args` (any pytree) or close over them."
+            )
+    return takes["t"], takes["args"]
+
+
+class UserFunction(eqx.Module):
+    """A user function wrapped once so that jaxlag can call it uniformly.
+
+    Calling ``wrapped(*state, t, args)`` forwards ``t`` and ``args`` by keyword only if the
+    user's function declared them. The user's function is an ordinary (non-static) field, so a
+    function that is itself a pytree of arrays (an ``eqx.Module``, a neural network) is
+    differentiated through like any other leaf.
+    """
+
+    fn: Callable
+    takes_t: bool = eqx.field(static=True)
+    takes_args: bool = eqx.field(static=True)
+    role: str = eqx.field(static=True)
+
+    def __call__(self, *state: Any, t: Any, args: Any) -> Any:
+        kwargs = {}
+        if self.takes_t:
+            kwargs["t"] = t
+        if self.takes_args:
+            kwargs["args"] = args
+        return self.fn(*state, **kwargs)
+
+
+def wrap_state_function(fn: Callable | None, role: str) -> UserFunction | None:
+    """Wrap ``fn(q, qd, [t], [args])`` (Lagrangian, dissipation, forces)."""
+    if fn is None:
+        return None
+    if isinstance(fn, UserFunction):
+        return fn
+    if not callable(fn):
+        raise TypeError(f"The {role} must be callable, got {type(fn).__name__}.")
+    takes_t, takes_args = _parse_signature(fn, 2, role)
+    return UserFunction(fn, takes_t, takes_args, role)
+
+
+def wrap_configuration_function(fn: Callable | None, role: str) -> UserFunction | None:
+    """Wrap ``fn(q, [t], [args])`` (holonomic constraints, Pfaffian ``A`` and ``b``)."""
+    if fn is None:
+        return None
+    if isinstance(fn, UserFunction):
+        return fn
+    if not callable(fn):
+        raise TypeError(f"The {role} must be callable, got {type(fn).__name__}.")
+    takes_t, takes_args = _parse_signature(fn, 1, role)
+    return UserFunction(fn, takes_t, takes_args, role)

@@ -1,0 +1,52 @@
+r"""The constrained equations of motion as a structured KKT solve.
+
+With stacked constraint rows ``G = [J; A]`` (holonomic and velocity constraints) the equations
+
+    M q̈ = F + Gᵀ Λ,        G q̈ = c,
+
+(``Λ = [λ; μ]``, sign convention of the seeds: ``d/dt ∂L/∂q̇ − ∂L/∂q = Jᵀλ + Aᵀμ + Qⁿᶜ``) form the
+saddle-point system ``[[M, −Gᵀ], [G, 0]] [q̈; Λ] = [F; c]``. ``M`` is symmetric positive definite,
+so it is solved in range-space (Schur complement) form, never as a general LU of the augmented
+matrix:
+
+    X = M⁻¹ [F, Gᵀ]                     (one Cholesky of M, m + 1 right-hand sides)
+    S = G M⁻¹ Gᵀ,   S Λ = c − G M⁻¹F     (a second, m × m Cholesky)
+    q̈ = M⁻¹F + M⁻¹Gᵀ Λ.
+
+When the constraints are redundant ``S`` is singular; with ``least_squares=True`` on the
+:class:`~jaxlag.System` ``Λ = S⁺(c − G M⁻¹F)`` is the minimum-norm choice, and ``q̈`` is still
+unique when the redundant constraints are consistent.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from .constraints import constraint_rows
+from .linalg import solve_psd_least_squares, solve_spd
+from .mechanics import mass_and_forces
+
+
+def solve_kkt(mass, force, rows, rhs, least_squares: bool = False):
+    """Solve ``M q̈ = F + Gᵀ Λ``, ``G q̈ = c``; return ``(q̈, Λ)``."""
+    m = rows.shape[0]
+    if m == 0:
+        return solve_spd(mass, force), jnp.zeros((0,), force.dtype)
+    solved = solve_spd(mass, jnp.concatenate([force[:, None], rows.T], axis=1))
+    free, minv_gt = solved[:, 0], solved[:, 1:]
+    schur = rows @ minv_gt
+    residual = rhs - rows @ free
+    if least_squares:
+        multipliers = solve_psd_least_squares(schur, residual)
+    else:
+        multipliers = solve_spd(schur, residual)
+    return free + minv_gt @ multipliers, multipliers
+
+
+def accelerations_and_multipliers(system, q, qd, t, args, baumgarte=None):
+    """``(q̈, λ, μ)`` at a state: accelerations, holonomic and velocity-constraint multipliers."""
+    mass, force = mass_and_forces(system, q, qd, t, args)
+    rows, rhs = constraint_rows(system, q, qd, t, args, baumgarte)
+    qdd, multipliers = solve_kkt(mass, force, rows, rhs, system.least_squares)
+    m_h = system.num_holonomic(q, t, args)
+    return qdd, multipliers[:m_h], multipliers[m_h:]

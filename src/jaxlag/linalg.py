@@ -1,0 +1,83 @@
+"""Small dense linear algebra for the hot path, chosen by (static) size.
+
+For the tiny symmetric positive definite systems of mechanics (mass matrices, Schur complements
+``J M⁻¹ Jᵀ``) the cost of a LAPACK custom call dominates the whole right-hand side. Up to
+``UNROLL_MAX`` unknowns the Cholesky factorization and both triangular solves are written out
+as scalar operations at trace time, which XLA fuses into a single kernel; above it we call
+LAPACK's Cholesky (``jax.scipy.linalg.cho_factor``/``cho_solve``). Both are differentiable.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+
+#: Largest size for which the factorization is written out (measured in ``benchmarks/``).
+UNROLL_MAX = 10
+
+
+def _unrolled_cholesky_solve(a, b):
+    """Solve ``a x = b`` for SPD ``a`` (n, n) and ``b`` (n, k) by a written-out Cholesky."""
+    n = a.shape[0]
+    lower = [[None] * n for _ in range(n)]
+    inv_diag = [None] * n
+    for j in range(n):
+        s = a[j, j]
+        for k in range(j):
+            s = s - lower[j][k] * lower[j][k]
+        d = jnp.sqrt(s)
+        inv_diag[j] = 1.0 / d
+        lower[j][j] = d
+        for i in range(j + 1, n):
+            s = a[i, j]
+            for k in range(j):
+                s = s - lower[i][k] * lower[j][k]
+            lower[i][j] = s * inv_diag[j]
+    rows = [b[i] for i in range(n)]
+    y = [None] * n
+    for i in range(n):
+        s = rows[i]
+        for k in range(i):
+            s = s - lower[i][k] * y[k]
+        y[i] = s * inv_diag[i]
+    x = [None] * n
+    for i in reversed(range(n)):
+        s = y[i]
+        for k in range(i + 1, n):
+            s = s - lower[k][i] * x[k]
+        x[i] = s * inv_diag[i]
+    return jnp.stack(x)
+
+
+def solve_spd(a, b):
+    """Solve ``a x = b`` for a symmetric positive definite ``a`` of shape (n, n).
+
+    ``b`` has shape (n,) or (n, k). The Cholesky factorization is written out for
+    ``n <= UNROLL_MAX`` and delegated to LAPACK above. A matrix that is not positive definite
+    gives non-finite values; callers check definiteness where it can first go wrong.
+    """
+    vector = b.ndim == 1
+    rhs = b[:, None] if vector else b
+    if a.shape[0] == 0:
+        x = rhs
+    elif a.shape[0] <= UNROLL_MAX:
+        x = _unrolled_cholesky_solve(a, rhs)
+    else:
+        x = jsl.cho_solve(jsl.cho_factor(a, lower=True), rhs)
+    return x[:, 0] if vector else x
+
+
+def solve_psd_least_squares(a, b, rcond: float = 1e-10):
+    """Minimum-norm least-squares solution of ``a x = b`` for symmetric positive semidefinite ``a``.
+
+    Eigenvalues below ``rcond * max(eigenvalue)`` are treated as zero (``x = a⁺ b``). Used for
+    redundant constraints, where ``J M⁻¹ Jᵀ`` is singular but the motion is still determined.
+    """
+    vector = b.ndim == 1
+    rhs = b[:, None] if vector else b
+    w, v = jnp.linalg.eigh(a)
+    cutoff = rcond * jnp.max(jnp.abs(w))
+    keep = w > cutoff
+    inv_w = jnp.where(keep, 1.0 / jnp.where(keep, w, 1.0), 0.0)
+    x = v @ (inv_w[:, None] * (v.T @ rhs))
+    return x[:, 0] if vector else x

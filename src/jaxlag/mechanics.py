@@ -1,0 +1,125 @@
+r"""Mechanics of a Lagrangian by automatic differentiation.
+
+For ``L(q, q̇, t)`` the Euler–Lagrange equations with generalized forces ``Q``,
+
+    d/dt ∂L/∂q̇ − ∂L/∂q = Q,
+
+expand, with ``p = ∂L/∂q̇``, to ``M q̈ = F`` where
+
+    M = ∂²L/∂q̇²                                     (mass matrix)
+    F = ∂L/∂q − (∂²L/∂q̇∂q) q̇ − ∂²L/∂q̇∂t + Qⁿᶜ         (generalized forces)
+    Qⁿᶜ = −∂R/∂q̇ + Q_ext                            (Rayleigh dissipation, external forces).
+
+All of ``M`` and the velocity terms come from one forward-over-reverse pass: the gradient
+``(∂L/∂q, ∂L/∂q̇)`` is pushed forward along the n unit directions in ``q̇`` (giving the columns
+of ``M``) and along ``(q̇, 0, 1)`` in ``(q, q̇, t)`` (giving ``(∂p/∂q) q̇ + ∂p/∂t``) in a single
+``vmap``-ed ``jvp``; the gradient itself is computed once. No dense Hessian in ``q`` is ever formed.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from .linalg import solve_spd
+
+
+def _as_time(t, q):
+    return jnp.asarray(t, dtype=jnp.result_type(q.dtype, jnp.float32))
+
+
+def lagrangian_terms(system, q, qd, t, args):
+    """Return ``(p, M, F_L)``: momenta, mass matrix, and the Lagrangian part of ``F``.
+
+    ``F_L = ∂L/∂q − (∂p/∂q) q̇ − ∂p/∂t`` (without dissipation or external forces).
+    """
+    t = _as_time(t, q)
+    n = q.shape[0]
+    L = system.lagrangian
+
+    def gradient(q_, qd_, t_):
+        return jax.grad(lambda a, b, c: L(a, b, t=c, args=args), argnums=(0, 1))(q_, qd_, t_)
+
+    eye = jnp.eye(n, dtype=q.dtype)
+    tangent_q = jnp.concatenate([jnp.zeros((n, n), q.dtype), qd[None, :]])
+    tangent_qd = jnp.concatenate([eye, jnp.zeros((1, n), q.dtype)])
+    tangent_t = jnp.concatenate([jnp.zeros((n,), t.dtype), jnp.ones((1,), t.dtype)])
+
+    def push(dq, dqd, dt):
+        (dL_dq, p), (_, dp) = jax.jvp(gradient, (q, qd, t), (dq, dqd, dt))
+        return dL_dq, p, dp
+
+    dL_dq, p, dp = jax.vmap(push, out_axes=(None, None, 0))(tangent_q, tangent_qd, tangent_t)
+    # Row i of dp[:n] is ∂p/∂q̇_i; M is symmetric, so this is M itself.
+    mass = dp[:n]
+    return p, mass, dL_dq - dp[n]
+
+
+def nonconservative_forces(system, q, qd, t, args):
+    """``Qⁿᶜ = −∂R/∂q̇ + Q_ext(q, q̇, t)``; zero when neither is given."""
+    total = jnp.zeros_like(q)
+    if system.dissipation is not None:
+        total = total - jax.grad(lambda v: system.dissipation(q, v, t=t, args=args))(qd)
+    if system.forces is not None:
+        total = total + jnp.asarray(system.forces(q, qd, t=t, args=args), dtype=q.dtype)
+    return total
+
+
+def mass_matrix(system, q, qd, t=0.0, args=None):
+    """``M = ∂²L/∂q̇²``, shape (n, n)."""
+    t = _as_time(t, q)
+    return jax.jacfwd(
+        jax.grad(lambda v: system.lagrangian(q, v, t=t, args=args)),
+    )(qd)
+
+
+def mass_and_forces(system, q, qd, t, args):
+    """``(M, F)`` of ``M q̈ = F`` with every generalized force included."""
+    _, mass, force = lagrangian_terms(system, q, qd, t, args)
+    return mass, force + nonconservative_forces(system, q, qd, t, args)
+
+
+def generalized_forces(system, q, qd, t=0.0, args=None):
+    """``F = ∂L/∂q − (∂²L/∂q̇∂q) q̇ − ∂²L/∂q̇∂t − ∂R/∂q̇ + Q_ext``, shape (n,)."""
+    return mass_and_forces(system, q, qd, t, args)[1]
+
+
+def momenta(system, q, qd, t=0.0, args=None):
+    """Generalized momenta ``p = ∂L/∂q̇``, shape (n,)."""
+    t = _as_time(t, q)
+    return jax.grad(lambda v: system.lagrangian(q, v, t=t, args=args))(qd)
+
+
+def energy(system, q, qd, t=0.0, args=None):
+    """Energy function (Jacobi integral) ``h = q̇·∂L/∂q̇ − L``; conserved when ``∂L/∂t = 0``
+    and there is no dissipation, no external force and no rheonomic constraint."""
+    t = _as_time(t, q)
+    value, p = jax.value_and_grad(lambda v: system.lagrangian(q, v, t=t, args=args))(qd)
+    return jnp.dot(qd, p) - value
+
+
+def lagrangian_value(system, q, qd, t=0.0, args=None):
+    """``L(q, q̇, t)`` through the calling convention."""
+    return system.lagrangian(q, qd, t=_as_time(t, q), args=args)
+
+
+def unconstrained_accelerations(system, q, qd, t, args):
+    """``q̈ = M⁻¹ F`` for a system without constraints."""
+    mass, force = mass_and_forces(system, q, qd, t, args)
+    return solve_spd(mass, force)
+
+
+def dissipated_power(system, q, qd, t=0.0, args=None):
+    """Power removed by Rayleigh dissipation, ``q̇·∂R/∂q̇`` (``= 2R`` for ``R`` quadratic in q̇)."""
+    if system.dissipation is None:
+        return jnp.zeros((), q.dtype)
+    t = _as_time(t, q)
+    return jnp.dot(qd, jax.grad(lambda v: system.dissipation(q, v, t=t, args=args))(qd))
+
+
+def input_power(system, q, qd, t=0.0, args=None):
+    """Power delivered by the external generalized forces, ``q̇·Q_ext``."""
+    if system.forces is None:
+        return jnp.zeros((), q.dtype)
+    t = _as_time(t, q)
+    return jnp.dot(qd, jnp.asarray(system.forces(q, qd, t=t, args=args), dtype=q.dtype))

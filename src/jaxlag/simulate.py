@@ -1,0 +1,182 @@
+"""``simulate``: integrate a :class:`~jaxlag.System` with ``diffrax.diffeqsolve``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .checks import _is_concrete, validate_initial_state
+from .kkt import accelerations_and_multipliers
+from .mechanics import unconstrained_accelerations
+from .stabilization import Baumgarte, Projection, ProjectedSolver
+from .system import System
+from .trajectory import Trajectory
+
+_AUTO = "auto"
+
+
+class EquationsOfMotion(eqx.Module):
+    """The first-order vector field ``(q, q̇) ↦ (q̇, q̈)`` as a diffrax-compatible callable.
+
+    A module (not a closure) so that repeated ``simulate`` calls hit diffrax's compilation cache.
+    """
+
+    system: System
+    baumgarte: Baumgarte | None = None
+
+    def __call__(self, t, y, args):
+        q, qd = y
+        if self.system.is_constrained:
+            qdd = accelerations_and_multipliers(self.system, q, qd, t, args, self.baumgarte)[0]
+        else:
+            qdd = unconstrained_accelerations(self.system, q, qd, t, args)
+        return qd, qdd
+
+
+def _as_array_leaves(tree):
+    """Python floats and NumPy arrays become JAX arrays so new values do not recompile."""
+
+    def convert(x):
+        if isinstance(x, (float, complex, np.ndarray, np.floating)):
+            return jnp.asarray(x)
+        return x
+
+    return jax.tree.map(convert, tree)
+
+
+@eqx.filter_jit
+def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat, max_steps,
+           adjoint, event, throw, progress_meter, baumgarte, projection, check, tolerance):
+    if check:
+        q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
+    if projection is not None:
+        solver = ProjectedSolver(solver, system, projection)
+    solution = diffrax.diffeqsolve(
+        diffrax.ODETerm(EquationsOfMotion(system, baumgarte)),
+        solver,
+        t0,
+        t1,
+        dt0,
+        (q0, qd0),
+        args,
+        saveat=saveat,
+        stepsize_controller=stepsize_controller,
+        adjoint=adjoint,
+        event=event,
+        max_steps=max_steps,
+        throw=throw,
+        progress_meter=progress_meter,
+    )
+    q, qd = solution.ys
+    if projection is not None:
+        # Saved values between steps come from the solver's interpolant: project them too.
+        q, qd = jax.vmap(lambda t, x, v: projection(system, x, v, t, args))(solution.ts, q, qd)
+    return Trajectory(
+        t=solution.ts, q=q, qd=qd, args=args, stats=solution.stats, result=solution.result,
+        system=system,
+    )
+
+
+def simulate(
+    system: System,
+    q0,
+    qd0,
+    ts=None,
+    *,
+    t0=None,
+    t1=None,
+    args: Any = None,
+    solver: diffrax.AbstractSolver | None = None,
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    dt0=None,
+    saveat: diffrax.SaveAt | None = None,
+    max_steps: int | None = 2**16,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    event: diffrax.Event | None = None,
+    throw: bool = True,
+    progress_meter: diffrax.AbstractProgressMeter | None = None,
+    baumgarte: Baumgarte | None = None,
+    projection: Projection | None | str = _AUTO,
+    check_initial_state: bool = True,
+    constraint_tolerance: float = 1e-8,
+) -> Trajectory:
+    """Integrate the equations of motion of ``system`` from ``(q0, qd0)``.
+
+    **Arguments:**
+
+    - ``system``: a :class:`~jaxlag.System`.
+    - ``q0``, ``qd0``: initial coordinates and velocities, 1-D arrays of the same length n.
+    - ``ts``: increasing save times; the integration runs from ``ts[0]`` to ``ts[-1]``.
+      Alternatively give ``t0``, ``t1`` and a ``diffrax.SaveAt``.
+    - ``args``: parameters (any pytree) passed to every user function that declares ``args``.
+
+    Every diffrax option passes through unchanged: ``solver`` (default ``diffrax.Tsit5()``),
+    ``stepsize_controller`` (default ``diffrax.PIDController(rtol=1e-10, atol=1e-10)``; with a
+    ``ConstantStepSize`` give ``dt0``), ``dt0`` (default: chosen by the controller), ``saveat``,
+    ``max_steps``, ``adjoint`` (default ``RecursiveCheckpointAdjoint``), ``event``, ``throw`` and
+    ``progress_meter``.
+
+    Constrained systems:
+
+    - ``projection``: a :class:`~jaxlag.Projection` applied after every accepted step and at the
+      saved times (default for constrained systems), or ``None``.
+    - ``baumgarte``: optional :class:`~jaxlag.Baumgarte` feedback in the acceleration constraint.
+    - ``check_initial_state``: raise if ``(q0, qd0)`` is non-finite, has a singular mass matrix,
+      redundant constraints, or is off the constraint manifold by more than
+      ``constraint_tolerance`` (see :func:`~jaxlag.consistent_initial_state`).
+
+    Returns a :class:`~jaxlag.Trajectory`.
+    """
+    q0 = jnp.asarray(q0)
+    if not jnp.issubdtype(q0.dtype, jnp.floating):
+        q0 = q0.astype(jnp.result_type(float))
+    qd0 = jnp.asarray(qd0)
+    if not jnp.issubdtype(qd0.dtype, jnp.floating):
+        qd0 = qd0.astype(q0.dtype)
+    args = _as_array_leaves(args)
+    if ts is not None:
+        ts = jnp.asarray(ts, dtype=q0.dtype)
+        if ts.ndim != 1 or ts.shape[0] < 1:
+            raise ValueError(f"ts must be a non-empty 1-D array of save times; got shape {ts.shape}.")
+        if _is_concrete(ts) and ts.shape[0] > 1 and not bool(jnp.all(jnp.diff(ts) > 0)):
+            raise ValueError("ts must be strictly increasing.")
+        t0 = ts[0] if t0 is None else t0
+        t1 = ts[-1] if t1 is None else t1
+        if saveat is None:
+            saveat = diffrax.SaveAt(ts=ts)
+    if t0 is None or t1 is None:
+        raise ValueError("Give save times `ts`, or `t0` and `t1` (with a diffrax.SaveAt).")
+    if saveat is None:
+        saveat = diffrax.SaveAt(t1=True)
+    t0 = jnp.asarray(t0, dtype=q0.dtype)
+    t1 = jnp.asarray(t1, dtype=q0.dtype)
+    system.check(q0, qd0, t0, args)
+    if solver is None:
+        solver = diffrax.Tsit5()
+    if stepsize_controller is None:
+        stepsize_controller = diffrax.PIDController(rtol=1e-10, atol=1e-10)
+    if adjoint is None:
+        adjoint = diffrax.RecursiveCheckpointAdjoint()
+    if progress_meter is None:
+        progress_meter = diffrax.NoProgressMeter()
+    if isinstance(projection, str):
+        if projection != _AUTO:
+            raise ValueError(f"projection must be a jl.Projection, None or 'auto'; got {projection!r}.")
+        projection = Projection() if system.is_constrained else None
+    if projection is not None and not system.is_constrained:
+        projection = None
+    check_in_jit = check_initial_state
+    if check_initial_state and _is_concrete((q0, qd0, t0, args)):
+        # Concrete inputs: check eagerly, so that errors carry the numbers and constraint names.
+        validate_initial_state(system, q0, qd0, t0, args, constraint_tolerance)
+        check_in_jit = False
+    return _solve(
+        system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat, max_steps,
+        adjoint, event, throw, progress_meter, baumgarte, projection, check_in_jit,
+        constraint_tolerance,
+    )

@@ -1,0 +1,122 @@
+"""``Trajectory``: the saved states of a simulation and the quantities derived from them."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from . import constraints as _constraints
+from . import kkt as _kkt
+from . import mechanics as _mechanics
+
+
+def _constraint_forces(system, q, qd, t, args):
+    _, lam, mu = _kkt.accelerations_and_multipliers(system, q, qd, t, args)
+    rows, _ = _constraints.constraint_rows(system, q, qd, t, args)
+    return rows.T @ jnp.concatenate([lam, mu])
+
+
+_QUANTITIES = {
+    "accelerations": lambda s, q, qd, t, a: _kkt.accelerations_and_multipliers(s, q, qd, t, a)[0],
+    "multipliers": lambda s, q, qd, t, a: _kkt.accelerations_and_multipliers(s, q, qd, t, a)[1],
+    "velocity_multipliers": lambda s, q, qd, t, a: _kkt.accelerations_and_multipliers(
+        s, q, qd, t, a
+    )[2],
+    "constraint_forces": _constraint_forces,
+    "energy": _mechanics.energy,
+    "momenta": _mechanics.momenta,
+    "lagrangian": _mechanics.lagrangian_value,
+    "constraint_residuals": _constraints.constraint_residuals,
+    "dissipated_power": _mechanics.dissipated_power,
+    "input_power": _mechanics.input_power,
+}
+
+
+@eqx.filter_jit
+def _evaluate(name: str, system, t, q, qd, args):
+    quantity = _QUANTITIES[name]
+
+    def along_time(t_, q_, qd_, a_):
+        return jax.vmap(lambda s, x, v: quantity(system, x, v, s, a_))(t_, q_, qd_)
+
+    fn = along_time
+    for _ in range(q.ndim - 2):  # batch dimensions added by vmap-ing simulate
+        fn = jax.vmap(fn)
+    return fn(t, q, qd, args)
+
+
+class Trajectory(eqx.Module):
+    """Saved states ``t`` (T,), ``q`` (T, n), ``qd`` (T, n) of a simulation.
+
+    Derived quantities are computed on demand from the saved states, with the same system and
+    parameters, under ``jit`` (inside a user's ``jit`` unused ones cost nothing). Batched
+    trajectories (from ``jax.vmap`` of :func:`~jaxlag.simulate`) carry leading batch axes and
+    their derived quantities do too.
+
+    Multipliers and constraint forces are those of the exact constrained equations at the saved
+    state (without any Baumgarte feedback term), with the convention ``M q̈ = F + Jᵀλ + Aᵀμ``.
+    """
+
+    t: Any
+    q: Any
+    qd: Any
+    args: Any
+    stats: Any
+    result: Any
+    system: Any = eqx.field(static=True)
+
+    def _get(self, name):
+        return _evaluate(name, self.system, self.t, self.q, self.qd, self.args)
+
+    @property
+    def accelerations(self):
+        """``q̈`` (T, n)."""
+        return self._get("accelerations")
+
+    @property
+    def multipliers(self):
+        """Holonomic multipliers ``λ`` (T, m_h)."""
+        return self._get("multipliers")
+
+    @property
+    def velocity_multipliers(self):
+        """Velocity-constraint multipliers ``μ`` (T, m_v)."""
+        return self._get("velocity_multipliers")
+
+    @property
+    def constraint_forces(self):
+        """Generalized constraint forces ``Qᶜ = Jᵀλ + Aᵀμ`` (T, n)."""
+        return self._get("constraint_forces")
+
+    @property
+    def energy(self):
+        """Energy function ``h = q̇·∂L/∂q̇ − L`` (T,)."""
+        return self._get("energy")
+
+    @property
+    def momenta(self):
+        """Generalized momenta ``p = ∂L/∂q̇`` (T, n)."""
+        return self._get("momenta")
+
+    @property
+    def lagrangian(self):
+        """``L`` along the trajectory (T,)."""
+        return self._get("lagrangian")
+
+    @property
+    def constraint_residuals(self):
+        """``(f, ḟ, g)`` along the trajectory: shapes (T, m_h), (T, m_h), (T, m_v)."""
+        return self._get("constraint_residuals")
+
+    @property
+    def dissipated_power(self):
+        """``q̇·∂R/∂q̇`` (T,)."""
+        return self._get("dissipated_power")
+
+    @property
+    def input_power(self):
+        """``q̇·Q`` (T,)."""
+        return self._get("input_power")
