@@ -29,6 +29,7 @@ def _is_concrete(tree) -> bool:
 
 @eqx.filter_jit
 def _diagnostics(system, q, qd, t, args):
+    system.check(q, qd, t, args)
     mass = mass_matrix(system, q, qd, t, args)
     eigenvalues = jnp.linalg.eigvalsh(mass)
     f, f_dot, g = _constraints.constraint_residuals(system, q, qd, t, args)

@@ -43,7 +43,8 @@ def _as_array_leaves(tree):
 
     def convert(x):
         if isinstance(x, (float, complex, np.ndarray, np.floating)):
-            return jnp.asarray(x)
+            x = jnp.asarray(x)
+            return jnp.asarray(x, dtype=x.dtype)  # a strong dtype: 1.0 and np.float64(1.0) share a trace
         return x
 
     return jax.tree.map(convert, tree)
@@ -52,6 +53,7 @@ def _as_array_leaves(tree):
 @eqx.filter_jit
 def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat, max_steps,
            adjoint, event, throw, progress_meter, baumgarte, projection, check, tolerance):
+    system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation
     if check:
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
     if projection is not None:
@@ -76,9 +78,8 @@ def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, save
     if projection is not None:
         # Saved values between steps come from the solver's interpolant: project them too.
         q, qd = jax.vmap(lambda t, x, v: projection(system, x, v, t, args))(solution.ts, q, qd)
-    return Trajectory(
-        t=solution.ts, q=q, qd=qd, args=args, stats=solution.stats, result=solution.result,
-        system=system,
+    return Trajectory.from_states(
+        system, solution.ts, q, qd, args, stats=solution.stats, result=solution.result
     )
 
 
@@ -143,7 +144,7 @@ def simulate(
         ts = jnp.asarray(ts, dtype=q0.dtype)
         if ts.ndim != 1 or ts.shape[0] < 1:
             raise ValueError(f"ts must be a non-empty 1-D array of save times; got shape {ts.shape}.")
-        if _is_concrete(ts) and ts.shape[0] > 1 and not bool(jnp.all(jnp.diff(ts) > 0)):
+        if _is_concrete(ts) and not np.all(np.diff(np.asarray(ts)) > 0):
             raise ValueError("ts must be strictly increasing.")
         t0 = ts[0] if t0 is None else t0
         t1 = ts[-1] if t1 is None else t1
@@ -155,7 +156,6 @@ def simulate(
         saveat = diffrax.SaveAt(t1=True)
     t0 = jnp.asarray(t0, dtype=q0.dtype)
     t1 = jnp.asarray(t1, dtype=q0.dtype)
-    system.check(q0, qd0, t0, args)
     if solver is None:
         solver = diffrax.Tsit5()
     if stepsize_controller is None:

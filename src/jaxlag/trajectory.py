@@ -36,16 +36,17 @@ _QUANTITIES = {
 
 
 @eqx.filter_jit
-def _evaluate(name: str, system, t, q, qd, args):
+def _evaluate(name: str, system_arrays, system_static, t, q, qd, args):
     quantity = _QUANTITIES[name]
 
-    def along_time(t_, q_, qd_, a_):
+    def along_time(arrays, t_, q_, qd_, a_):
+        system = eqx.combine(arrays, system_static)
         return jax.vmap(lambda s, x, v: quantity(system, x, v, s, a_))(t_, q_, qd_)
 
     fn = along_time
     for _ in range(q.ndim - 2):  # batch dimensions added by vmap-ing simulate
         fn = jax.vmap(fn)
-    return fn(t, q, qd, args)
+    return fn(system_arrays, t, q, qd, args)
 
 
 class Trajectory(eqx.Module):
@@ -66,10 +67,25 @@ class Trajectory(eqx.Module):
     args: Any
     stats: Any
     result: Any
-    system: Any = eqx.field(static=True)
+    # The system is split so that a Trajectory is a valid output of jax.jit / vmap: its arrays
+    # (e.g. a neural-network Lagrangian's weights) are leaves, its functions static.
+    system_arrays: Any
+    system_static: Any = eqx.field(static=True)
+
+    @classmethod
+    def from_states(cls, system, t, q, qd, args, stats=None, result=None):
+        arrays, static = eqx.partition(system, eqx.is_array)
+        return cls(t, q, qd, args, stats, result, arrays, static)
+
+    @property
+    def system(self):
+        """The :class:`~jaxlag.System` that produced this trajectory."""
+        return eqx.combine(self.system_arrays, self.system_static)
 
     def _get(self, name):
-        return _evaluate(name, self.system, self.t, self.q, self.qd, self.args)
+        return _evaluate(
+            name, self.system_arrays, self.system_static, self.t, self.q, self.qd, self.args
+        )
 
     @property
     def accelerations(self):

@@ -1,0 +1,1 @@
+"""jaxlag performance benchmarks: ``python -m benchmarks`` from the repository root."""
