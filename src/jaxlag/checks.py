@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import constraints as _constraints
+from .kkt import accelerations_and_multipliers
 from .mechanics import mass_matrix
 
 #: A mass matrix whose smallest eigenvalue is below this fraction of its largest is singular.
@@ -27,25 +28,51 @@ def _is_concrete(tree) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(tree))
 
 
+def initial_activity(system, q, t, args, tolerance):
+    """Holonomic activity mask at the start: unilateral constraints act only where ``f_i ≈ 0``."""
+    if system.holonomic is None:
+        return jnp.zeros((0,), bool)
+    f = _constraints.holonomic_residual(system, q, t, args)
+    active = jnp.ones(f.shape, bool)
+    for i in system.unilateral:
+        active = active.at[i].set(jnp.abs(f[i]) <= tolerance)
+    return active
+
+
 @eqx.filter_jit
-def _diagnostics(system, q, qd, t, args):
+def _diagnostics(system, q, qd, t, args, tolerance):
     system.check(q, qd, t, args)
     mass = mass_matrix(system, q, qd, t, args)
     eigenvalues = jnp.linalg.eigvalsh(mass)
     f, f_dot, g = _constraints.constraint_residuals(system, q, qd, t, args)
     rows, _ = _constraints.constraint_rows(system, q, qd, t, args)
+    active = initial_activity(system, q, t, args, tolerance)
+    unilateral = jnp.zeros(f.shape, bool)
+    for i in system.unilateral:
+        unilateral = unilateral.at[i].set(True)
+    row_weight = jnp.concatenate([active, jnp.ones(g.shape, bool)]).astype(q.dtype)
     if rows.shape[0] > 0:
-        singular_values = jnp.linalg.svd(rows, compute_uv=False)
+        singular_values = jnp.linalg.svd(rows * row_weight[:, None], compute_uv=False)
     else:
         singular_values = jnp.ones((1,), q.dtype)
+    if system.unilateral:
+        _, lam, _ = accelerations_and_multipliers(system, q, qd, t, args, active=active)
+        scale = 1.0 + jnp.max(jnp.abs(lam))
+        wrong_sign = jnp.any(active & unilateral & (lam < -tolerance * scale))
+    else:
+        wrong_sign = jnp.asarray(False)
     return dict(
         finite=jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(qd)),
         eigenvalues=eigenvalues,
-        f=f,
-        f_dot=f_dot,
+        f=jnp.where(active, f, 0.0),
+        f_dot=jnp.where(active, f_dot, 0.0),
+        f_raw=f,
         g=g,
-        rows=rows,
+        rows=rows * row_weight[:, None],
+        num_active=jnp.sum(row_weight),
         singular_values=singular_values,
+        violated=jnp.any(unilateral & (f < -tolerance)),
+        wrong_sign=wrong_sign,
     )
 
 
@@ -54,13 +81,16 @@ def _failures(d, least_squares: bool, tolerance: float):
     sv = d["singular_values"]
     residual = jnp.concatenate([jnp.abs(d["f"]), jnp.abs(d["f_dot"]), jnp.abs(d["g"]),
                                 jnp.zeros((1,), eig.dtype)])
+    rank = jnp.sum(sv > CONSTRAINT_RCOND * sv[0])
     return dict(
         nonfinite=~d["finite"],
         mass=~(eig[0] > MASS_RCOND * jnp.max(jnp.abs(eig))),
         rank=jnp.asarray(False)
-        if least_squares
-        else jnp.asarray(d["rows"].shape[0] > d["rows"].shape[1]) | ~(sv[-1] > CONSTRAINT_RCOND * sv[0]),
+        if least_squares or d["rows"].shape[0] == 0
+        else rank < d["num_active"],
         off_manifold=~(jnp.max(residual) <= tolerance),
+        violated=d["violated"],
+        wrong_sign=d["wrong_sign"],
     )
 
 
@@ -87,7 +117,7 @@ _POINTER = (
 
 def validate_initial_state(system, q, qd, t, args, tolerance: float):
     """Check the initial state; return ``(q, qd)`` (threaded through the run-time checks)."""
-    d = _diagnostics(system, q, qd, t, args)
+    d = _diagnostics(system, q, qd, t, args, tolerance)
     fail = _failures(d, system.least_squares, tolerance)
     if _is_concrete((q, qd, t, args)):
         if bool(fail["nonfinite"]):
@@ -108,12 +138,24 @@ def validate_initial_state(system, q, qd, t, args, tolerance: float):
                 "least_squares=True to jl.System to accept consistent redundant constraints "
                 "(minimum-norm multipliers)."
             )
+        if bool(fail["violated"]):
+            raise ValueError(
+                f"A unilateral constraint is violated at the initial state (f_i < 0): f(q0) = "
+                f"{np.asarray(d['f_raw'])}, unilateral indices {system.unilateral}. One-sided "
+                "constraints are written f_i(q, t) >= 0."
+            )
         if bool(fail["off_manifold"]):
             raise ValueError(
                 "The initial state is off the constraint manifold beyond the tolerance "
                 f"{tolerance:g}: f(q0) = {np.asarray(d['f'])}, ḟ = J q̇0 + ∂f/∂t = "
                 f"{np.asarray(d['f_dot'])}, velocity constraints g = {np.asarray(d['g'])}. "
                 + _POINTER
+            )
+        if bool(fail["wrong_sign"]):
+            raise ValueError(
+                "A unilateral constraint in contact at t0 has a multiplier of the wrong sign: it "
+                "would have to pull (λ_i < 0) to hold, so it cannot be in contact. Start the motion "
+                f"off the constraint (f_i > 0) instead. f(q0) = {np.asarray(d['f_raw'])}."
             )
         return q, qd
     q = eqx.error_if(q, fail["nonfinite"], "jaxlag: the initial state is not finite.")
@@ -134,5 +176,14 @@ def validate_initial_state(system, q, qd, t, args, tolerance: float):
         q,
         fail["off_manifold"],
         "jaxlag: the initial state is off the constraint manifold beyond tolerance. " + _POINTER,
+    )
+    q = eqx.error_if(
+        q, fail["violated"], "jaxlag: a unilateral constraint is violated at the initial state."
+    )
+    q = eqx.error_if(
+        q,
+        fail["wrong_sign"],
+        "jaxlag: a unilateral constraint in contact at t0 has a multiplier of the wrong sign "
+        "(it would have to pull).",
     )
     return q, qd

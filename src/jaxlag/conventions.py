@@ -25,13 +25,15 @@ import equinox as eqx
 _EXTRA_NAMES = ("t", "args")
 
 
-def _parse_signature(fn: Callable, n_state: int, role: str) -> tuple[bool, bool]:
-    """Return ``(takes_t, takes_args)`` for ``fn`` called with ``n_state`` positional arguments."""
+def _parse_signature(
+    fn: Callable, n_state: int, role: str, extra_names: tuple[str, ...] = _EXTRA_NAMES
+) -> tuple[str, ...]:
+    """Return the keywords among ``extra_names`` that ``fn`` declares (after its state)."""
     try:
         signature = inspect.signature(fn)
     except (TypeError, ValueError):
         # Builtins and some C callables have no signature: assume the bare state form.
-        return False, False
+        return ()
     positional = [
         p
         for p in signature.parameters.values()
@@ -53,42 +55,37 @@ def _parse_signature(fn: Callable, n_state: int, role: str) -> tuple[bool, bool]
         )
     state_params = positional[:n_state]
     rest = [p for p in signature.parameters.values() if p not in state_params]
-    takes = {name: has_var_keyword for name in _EXTRA_NAMES}
+    takes = {name: has_var_keyword for name in extra_names}
     for p in rest:
         if p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD):
             continue
-        if p.name in _EXTRA_NAMES:
+        if p.name in extra_names:
             takes[p.name] = True
         elif p.default is p.empty:
             raise TypeError(
                 f"The {role} {fn!r} has a required parameter `{p.name}` that jaxlag cannot fill. "
-                f"jaxlag calls it as `{role}({state_names}, t=t, args=args)`, passing `t` and `args` "
-                "only if declared; put your parameters in `args` (any pytree) or close over them."
+                f"jaxlag calls it as `{role}({state_names}, t=t, args=args)`, passing "
+                f"{', '.join(extra_names)} only if declared; put your parameters in `args` (any "
+                "pytree) or close over them."
             )
-    return takes["t"], takes["args"]
+    return tuple(name for name in extra_names if takes[name])
 
 
 class UserFunction(eqx.Module):
     """A user function wrapped once so that jaxlag can call it uniformly.
 
-    Calling ``wrapped(*state, t, args)`` forwards ``t`` and ``args`` by keyword only if the
-    user's function declared them. The user's function is an ordinary (non-static) field, so a
+    Calling ``wrapped(*state, t=t, args=args)`` forwards ``t`` and ``args`` by keyword only if
+    the user's function declared them. The user's function is an ordinary (non-static) field, so a
     function that is itself a pytree of arrays (an ``eqx.Module``, a neural network) is
     differentiated through like any other leaf.
     """
 
     fn: Callable
-    takes_t: bool = eqx.field(static=True)
-    takes_args: bool = eqx.field(static=True)
+    keywords: tuple = eqx.field(static=True)
     role: str = eqx.field(static=True)
 
-    def __call__(self, *state: Any, t: Any, args: Any) -> Any:
-        kwargs = {}
-        if self.takes_t:
-            kwargs["t"] = t
-        if self.takes_args:
-            kwargs["args"] = args
-        return self.fn(*state, **kwargs)
+    def __call__(self, *state: Any, **available: Any) -> Any:
+        return self.fn(*state, **{name: available[name] for name in self.keywords})
 
 
 def wrap_state_function(fn: Callable | None, role: str) -> UserFunction | None:
@@ -99,8 +96,7 @@ def wrap_state_function(fn: Callable | None, role: str) -> UserFunction | None:
         return fn
     if not callable(fn):
         raise TypeError(f"The {role} must be callable, got {type(fn).__name__}.")
-    takes_t, takes_args = _parse_signature(fn, 2, role)
-    return UserFunction(fn, takes_t, takes_args, role)
+    return UserFunction(fn, _parse_signature(fn, 2, role), role)
 
 
 def wrap_configuration_function(fn: Callable | None, role: str) -> UserFunction | None:
@@ -111,5 +107,13 @@ def wrap_configuration_function(fn: Callable | None, role: str) -> UserFunction 
         return fn
     if not callable(fn):
         raise TypeError(f"The {role} must be callable, got {type(fn).__name__}.")
-    takes_t, takes_args = _parse_signature(fn, 1, role)
-    return UserFunction(fn, takes_t, takes_args, role)
+    return UserFunction(fn, _parse_signature(fn, 1, role), role)
+
+
+def wrap_event_function(fn: Callable, role: str = "event condition") -> UserFunction:
+    """Wrap ``c(q, qd, [t], [args], [multipliers])`` (event conditions)."""
+    if isinstance(fn, UserFunction):
+        return fn
+    if not callable(fn):
+        raise TypeError(f"The {role} must be callable, got {type(fn).__name__}.")
+    return UserFunction(fn, _parse_signature(fn, 2, role, _EXTRA_NAMES + ("multipliers",)), role)

@@ -27,14 +27,33 @@ from .linalg import solve_psd_least_squares, solve_spd
 from .mechanics import mass_and_forces
 
 
-def solve_kkt(mass, force, rows, rhs, least_squares: bool = False):
-    """Solve ``M q̈ = F + Gᵀ Λ``, ``G q̈ = c``; return ``(q̈, Λ)``."""
+def deactivate(rows, rhs, active):
+    """Zero the rows (and right-hand sides) of inactive constraints.
+
+    Returns ``(rows, rhs, pad)`` where ``pad = diag(1 − active)`` is added to the Schur complement
+    so that it stays invertible and the inactive multipliers come out exactly zero. Shapes stay
+    static, so switching a unilateral constraint on or off never recompiles.
+    """
+    if active is None:
+        return rows, rhs, None
+    weight = jnp.asarray(active, rows.dtype)
+    return rows * weight[:, None], rhs * weight, jnp.diag(1.0 - weight)
+
+
+def solve_kkt(mass, force, rows, rhs, least_squares: bool = False, active=None):
+    """Solve ``M q̈ = F + Gᵀ Λ``, ``G q̈ = c``; return ``(q̈, Λ)``.
+
+    ``active`` (m,) optionally switches constraints off (their multipliers are zero).
+    """
     m = rows.shape[0]
     if m == 0:
         return solve_spd(mass, force), jnp.zeros((0,), force.dtype)
+    rows, rhs, pad = deactivate(rows, rhs, active)
     solved = solve_spd(mass, jnp.concatenate([force[:, None], rows.T], axis=1))
     free, minv_gt = solved[:, 0], solved[:, 1:]
     schur = rows @ minv_gt
+    if pad is not None:
+        schur = schur + pad
     residual = rhs - rows @ free
     if least_squares:
         multipliers = solve_psd_least_squares(schur, residual)
@@ -43,10 +62,17 @@ def solve_kkt(mass, force, rows, rhs, least_squares: bool = False):
     return free + minv_gt @ multipliers, multipliers
 
 
-def accelerations_and_multipliers(system, q, qd, t, args, baumgarte=None):
-    """``(q̈, λ, μ)`` at a state: accelerations, holonomic and velocity-constraint multipliers."""
+def accelerations_and_multipliers(system, q, qd, t, args, baumgarte=None, active=None):
+    """``(q̈, λ, μ)`` at a state: accelerations, holonomic and velocity-constraint multipliers.
+
+    ``active`` (m_h,) optionally marks which holonomic constraints currently act (unilateral
+    constraints that have let go are inactive; their ``λ`` is zero).
+    """
     mass, force = mass_and_forces(system, q, qd, t, args)
     rows, rhs = constraint_rows(system, q, qd, t, args, baumgarte)
-    qdd, multipliers = solve_kkt(mass, force, rows, rhs, system.least_squares)
     m_h = system.num_holonomic(q, t, args)
+    if active is not None:
+        active = jnp.concatenate([jnp.asarray(active, q.dtype),
+                                  jnp.ones((rows.shape[0] - m_h,), q.dtype)])
+    qdd, multipliers = solve_kkt(mass, force, rows, rhs, system.least_squares, active)
     return qdd, multipliers[:m_h], multipliers[m_h:]

@@ -28,11 +28,14 @@ class EquationsOfMotion(eqx.Module):
 
     system: System
     baumgarte: Baumgarte | None = None
+    active: Any = None  # holonomic activity mask (m_h,) while unilateral constraints are off
 
     def __call__(self, t, y, args):
         q, qd = y
         if self.system.is_constrained:
-            qdd = accelerations_and_multipliers(self.system, q, qd, t, args, self.baumgarte)[0]
+            qdd = accelerations_and_multipliers(
+                self.system, q, qd, t, args, self.baumgarte, self.active
+            )[0]
         else:
             qdd = unconstrained_accelerations(self.system, q, qd, t, args)
         return qd, qdd

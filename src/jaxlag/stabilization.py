@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 
 from . import constraints as _constraints
+from .kkt import deactivate
 from .linalg import solve_psd_least_squares, solve_spd
 from .mechanics import _as_time, mass_matrix
 
@@ -43,24 +44,40 @@ class Baumgarte(eqx.Module):
     beta: float = 10.0
 
 
-def _schur_correction(system, mass, rows, residual):
-    """``M⁻¹Gᵀ (G M⁻¹ Gᵀ)⁻¹ r``: the M-weighted minimal change that removes the linear residual."""
+def _schur_correction(system, mass, rows, residual, active=None):
+    """``M⁻¹Gᵀ (G M⁻¹ Gᵀ)⁻¹ r``: the M-weighted minimal change that removes the linear residual.
+
+    Rows whose ``active`` entry is zero are left out (see :func:`jaxlag.kkt.deactivate`).
+    """
+    rows, residual, pad = deactivate(rows, residual, active)
     minv_gt = solve_spd(mass, rows.T)
     schur = rows @ minv_gt
+    if pad is not None:
+        schur = schur + pad
     if system.least_squares:
         return minv_gt @ solve_psd_least_squares(schur, residual)
     return minv_gt @ solve_spd(schur, residual)
 
 
-def project_state(system, q, qd, t, args, newton_steps: int = 1):
-    """Project ``(q, q̇)`` onto ``f = 0``, ``ḟ = 0``, ``g = 0`` in the metric of ``M(q, q̇)``."""
+def project_state(system, q, qd, t, args, newton_steps: int = 1, active=None,
+                  refresh_mass: bool = False):
+    """Project ``(q, q̇)`` onto ``f = 0``, ``ḟ = 0``, ``g = 0`` in the metric of ``M(q, q̇)``.
+
+    The metric is ``M`` at the incoming state, held fixed through the Newton iterations, so
+    the position correction is the mass-weighted minimal one to first order in its size. With
+    ``refresh_mass`` the velocity projection uses ``M`` at the corrected position (exactly
+    minimal there); per-step projection skips that, as the correction is at round-off level.
+    ``active`` (m_h,) optionally restricts the holonomic constraints projected onto.
+    """
     t = _as_time(t, q)
     mass = mass_matrix(system, q, qd, t, args)
     if system.holonomic is not None:
         for _ in range(newton_steps):
             f = _constraints.holonomic_residual(system, q, t, args)
             jac = jax.jacfwd(lambda x: _constraints.holonomic_residual(system, x, t, args))(q)
-            q = q - _schur_correction(system, mass, jac, f)
+            q = q - _schur_correction(system, mass, jac, f, active)
+        if refresh_mass:
+            mass = mass_matrix(system, q, qd, t, args)
     rows, residual = [], []
     if system.holonomic is not None:
         def f_of(x, s):
@@ -75,9 +92,12 @@ def project_state(system, q, qd, t, args, newton_steps: int = 1):
         rows.append(a)
         residual.append(g)
     if rows:
-        qd = qd - _schur_correction(
-            system, mass, jnp.concatenate(rows), jnp.concatenate(residual)
-        )
+        rows, residual = jnp.concatenate(rows), jnp.concatenate(residual)
+        if active is not None:
+            active = jnp.concatenate(
+                [jnp.asarray(active, q.dtype), jnp.ones((rows.shape[0] - active.shape[0],), q.dtype)]
+            )
+        qd = qd - _schur_correction(system, mass, rows, residual, active)
     return q, qd
 
 
@@ -90,8 +110,8 @@ class Projection(eqx.Module):
 
     newton_steps: int = eqx.field(static=True, default=1)
 
-    def __call__(self, system, q, qd, t, args):
-        return project_state(system, q, qd, t, args, self.newton_steps)
+    def __call__(self, system, q, qd, t, args, active=None):
+        return project_state(system, q, qd, t, args, self.newton_steps, active)
 
 
 class ProjectedSolver(diffrax.AbstractWrappedSolver):
@@ -106,6 +126,7 @@ class ProjectedSolver(diffrax.AbstractWrappedSolver):
     solver: diffrax.AbstractSolver
     system: Any
     projection: Projection
+    active: Any = None
 
     @property
     def term_structure(self):
@@ -135,7 +156,7 @@ class ProjectedSolver(diffrax.AbstractWrappedSolver):
         y1, y_error, dense_info, solver_state, result = self.solver.step(
             terms, t0, t1, y0, args, solver_state, made_jump
         )
-        q1, qd1 = self.projection(self.system, y1[0], y1[1], t1, args)
+        q1, qd1 = self.projection(self.system, y1[0], y1[1], t1, args, self.active)
         return (q1, qd1), y_error, dense_info, solver_state, result
 
     def func(self, terms, t0, y0, args):
@@ -156,7 +177,7 @@ def consistent_initial_state(system, q0, qd0, t0=0.0, args=None, *, newton_steps
     q0 = jnp.asarray(q0, dtype=jnp.result_type(float))
     qd0 = jnp.asarray(qd0, dtype=q0.dtype)
     system.check(q0, qd0, t0, args)
-    q, qd = project_state(system, q0, qd0, t0, args, newton_steps)
+    q, qd = project_state(system, q0, qd0, t0, args, newton_steps, refresh_mass=True)
     if system.holonomic is not None:
         f = _constraints.holonomic_residual(system, q, t0, args)
         q = eqx.error_if(

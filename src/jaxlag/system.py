@@ -30,6 +30,11 @@ class System(eqx.Module):
     - ``forces``: external generalized forces ``Q(q, qd, [t], [args]) -> (n,)``.
     - ``least_squares``: accept redundant constraints (singular ``J M⁻¹ Jᵀ``) and report the
       minimum-norm multipliers instead of raising.
+    - ``unilateral``: indices of holonomic constraints that are one-sided, ``f_i(q, t) ≥ 0``
+      with ``λ_i ≥ 0`` while in contact (a particle on the outside of a sphere ``r − R ≥ 0``,
+      a string ``l − r ≥ 0``). :func:`~jaxlag.simulate` releases such a constraint when its
+      multiplier crosses zero and re-engages it (perfectly plastic impact) when ``f_i`` returns
+      to zero.
 
     Equations of motion (sign convention of the seeds):
     ``d/dt ∂L/∂q̇ − ∂L/∂q = Jᵀλ + Aᵀμ − ∂R/∂q̇ + Q``, i.e. ``M q̈ = F + Jᵀλ + Aᵀμ``.
@@ -41,6 +46,7 @@ class System(eqx.Module):
     dissipation: UserFunction | None
     forces: UserFunction | None
     least_squares: bool = eqx.field(static=True)
+    unilateral: tuple = eqx.field(static=True)
 
     def __init__(
         self,
@@ -51,6 +57,7 @@ class System(eqx.Module):
         dissipation: Callable | None = None,
         forces: Callable | None = None,
         least_squares: bool = False,
+        unilateral=(),
     ):
         self.lagrangian = wrap_state_function(lagrangian, "lagrangian")
         self.holonomic = wrap_configuration_function(holonomic, "holonomic constraint function")
@@ -60,6 +67,11 @@ class System(eqx.Module):
         self.dissipation = wrap_state_function(dissipation, "dissipation function")
         self.forces = wrap_state_function(forces, "force function")
         self.least_squares = bool(least_squares)
+        if isinstance(unilateral, int):
+            unilateral = (unilateral,)
+        self.unilateral = tuple(sorted({int(i) for i in unilateral}))
+        if self.unilateral and holonomic is None:
+            raise ValueError("unilateral names holonomic constraints, but no holonomic function was given.")
 
     # ----------------------------------------------------------------- structure and checks
     @property
@@ -104,6 +116,12 @@ class System(eqx.Module):
                     "The holonomic constraint function must return a 1-D array of shape (m,), one "
                     f"entry per constraint; it returned shape {out}. Wrap a single constraint as "
                     "jnp.array([f])."
+                )
+            bad = [i for i in self.unilateral if not 0 <= i < out[0]]
+            if bad:
+                raise ValueError(
+                    f"unilateral={self.unilateral} names constraints {bad}, but the holonomic "
+                    f"function returns only {out[0]} entries."
                 )
         if self.velocity_constraints is not None:
             out = shape_of(self.velocity_constraints, q, qd)

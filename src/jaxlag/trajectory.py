@@ -13,40 +13,49 @@ from . import kkt as _kkt
 from . import mechanics as _mechanics
 
 
-def _constraint_forces(system, q, qd, t, args):
-    _, lam, mu = _kkt.accelerations_and_multipliers(system, q, qd, t, args)
+def _constraint_forces(system, q, qd, t, args, active):
+    _, lam, mu = _kkt.accelerations_and_multipliers(system, q, qd, t, args, active=active)
     rows, _ = _constraints.constraint_rows(system, q, qd, t, args)
     return rows.T @ jnp.concatenate([lam, mu])
 
 
+def _kkt_output(index):
+    def quantity(system, q, qd, t, args, active):
+        return _kkt.accelerations_and_multipliers(system, q, qd, t, args, active=active)[index]
+
+    return quantity
+
+
+def _state_only(fn):
+    return lambda system, q, qd, t, args, active: fn(system, q, qd, t, args)
+
+
 _QUANTITIES = {
-    "accelerations": lambda s, q, qd, t, a: _kkt.accelerations_and_multipliers(s, q, qd, t, a)[0],
-    "multipliers": lambda s, q, qd, t, a: _kkt.accelerations_and_multipliers(s, q, qd, t, a)[1],
-    "velocity_multipliers": lambda s, q, qd, t, a: _kkt.accelerations_and_multipliers(
-        s, q, qd, t, a
-    )[2],
+    "accelerations": _kkt_output(0),
+    "multipliers": _kkt_output(1),
+    "velocity_multipliers": _kkt_output(2),
     "constraint_forces": _constraint_forces,
-    "energy": _mechanics.energy,
-    "momenta": _mechanics.momenta,
-    "lagrangian": _mechanics.lagrangian_value,
-    "constraint_residuals": _constraints.constraint_residuals,
-    "dissipated_power": _mechanics.dissipated_power,
-    "input_power": _mechanics.input_power,
+    "energy": _state_only(_mechanics.energy),
+    "momenta": _state_only(_mechanics.momenta),
+    "lagrangian": _state_only(_mechanics.lagrangian_value),
+    "constraint_residuals": _state_only(_constraints.constraint_residuals),
+    "dissipated_power": _state_only(_mechanics.dissipated_power),
+    "input_power": _state_only(_mechanics.input_power),
 }
 
 
 @eqx.filter_jit
-def _evaluate(name: str, system_arrays, system_static, t, q, qd, args):
+def _evaluate(name: str, system_arrays, system_static, t, q, qd, args, active):
     quantity = _QUANTITIES[name]
 
-    def along_time(arrays, t_, q_, qd_, a_):
+    def along_time(arrays, t_, q_, qd_, a_, active_):
         system = eqx.combine(arrays, system_static)
-        return jax.vmap(lambda s, x, v: quantity(system, x, v, s, a_))(t_, q_, qd_)
+        return jax.vmap(lambda s, x, v, m: quantity(system, x, v, s, a_, m))(t_, q_, qd_, active_)
 
     fn = along_time
     for _ in range(q.ndim - 2):  # batch dimensions added by vmap-ing simulate
         fn = jax.vmap(fn)
-    return fn(system_arrays, t, q, qd, args)
+    return fn(system_arrays, t, q, qd, args, active)
 
 
 class Trajectory(eqx.Module):
@@ -70,12 +79,17 @@ class Trajectory(eqx.Module):
     # The system is split so that a Trajectory is a valid output of jax.jit / vmap: its arrays
     # (e.g. a neural-network Lagrangian's weights) are leaves, its functions static.
     system_arrays: Any
+    #: Holonomic activity mask (T, m_h) when unilateral constraints switch, else None.
+    active: Any
+    #: :class:`~jaxlag.EventLog` of the switches and events, or None.
+    events: Any
     system_static: Any = eqx.field(static=True)
 
     @classmethod
-    def from_states(cls, system, t, q, qd, args, stats=None, result=None):
+    def from_states(cls, system, t, q, qd, args, stats=None, result=None, active=None,
+                    events=None):
         arrays, static = eqx.partition(system, eqx.is_array)
-        return cls(t, q, qd, args, stats, result, arrays, static)
+        return cls(t, q, qd, args, stats, result, arrays, active, events, static)
 
     @property
     def system(self):
@@ -84,7 +98,8 @@ class Trajectory(eqx.Module):
 
     def _get(self, name):
         return _evaluate(
-            name, self.system_arrays, self.system_static, self.t, self.q, self.qd, self.args
+            name, self.system_arrays, self.system_static, self.t, self.q, self.qd, self.args,
+            self.active,
         )
 
     @property
