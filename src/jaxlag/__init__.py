@@ -6,6 +6,7 @@ compiled, differentiable diffrax simulation. Sign convention everywhere:
 """
 
 from .conventions import UserFunction
+from .events import Event, EventLog
 from .kkt import solve_kkt
 from .simulate import EquationsOfMotion, simulate
 from .stabilization import Baumgarte, Projection, ProjectedSolver, consistent_initial_state
@@ -15,6 +16,8 @@ from .trajectory import Trajectory
 __all__ = [
     "Baumgarte",
     "EquationsOfMotion",
+    "Event",
+    "EventLog",
     "Projection",
     "ProjectedSolver",
     "System",

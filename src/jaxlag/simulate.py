@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .checks import _is_concrete, validate_initial_state
+from .events import Event, default_root_finder, solve_segments
 from .kkt import accelerations_and_multipliers
 from .mechanics import unconstrained_accelerations
 from .stabilization import Baumgarte, Projection, ProjectedSolver
@@ -108,6 +109,9 @@ def simulate(
     projection: Projection | None | str = _AUTO,
     check_initial_state: bool = True,
     constraint_tolerance: float = 1e-8,
+    events=(),
+    max_segments: int = 8,
+    event_root_finder=None,
 ) -> Trajectory:
     """Integrate the equations of motion of ``system`` from ``(q0, qd0)``.
 
@@ -133,6 +137,15 @@ def simulate(
     - ``check_initial_state``: raise if ``(q0, qd0)`` is non-finite, has a singular mass matrix,
       redundant constraints, or is off the constraint manifold by more than
       ``constraint_tolerance`` (see :func:`~jaxlag.consistent_initial_state`).
+
+    Events and unilateral constraints (see :mod:`jaxlag.events`):
+
+    - ``events``: :class:`~jaxlag.Event` conditions (terminal or recorded).
+    - If the system has ``unilateral`` constraints or ``events`` are given, the motion is
+      integrated in at most ``max_segments`` segments between switches, each event located by
+      ``event_root_finder`` (default ``optimistix.Newton(rtol=1e-13, atol=1e-13)``); the
+      returned trajectory has ``events`` (an :class:`~jaxlag.EventLog`) and ``active`` set.
+      This mode needs ``ts``.
 
     Returns a :class:`~jaxlag.Trajectory`.
     """
@@ -173,11 +186,32 @@ def simulate(
         projection = Projection() if system.is_constrained else None
     if projection is not None and not system.is_constrained:
         projection = None
+    if isinstance(events, Event):
+        events = (events,)
+    events = tuple(events)
+    for e in events:
+        if not isinstance(e, Event):
+            raise TypeError(f"events must be jl.Event instances; got {type(e).__name__}.")
+    segmented = bool(events) or bool(system.unilateral)
+    if segmented and (ts is None or event is not None):
+        raise ValueError(
+            "Unilateral constraints and jl.Event need save times `ts` and no diffrax `event` "
+            "(use jl.Event for conditions)."
+        )
     check_in_jit = check_initial_state
     if check_initial_state and _is_concrete((q0, qd0, t0, args)):
         # Concrete inputs: check eagerly, so that errors carry the numbers and constraint names.
         validate_initial_state(system, q0, qd0, t0, args, constraint_tolerance)
         check_in_jit = False
+    if segmented:
+        if event_root_finder is None:
+            event_root_finder = default_root_finder()
+        ts_out, q, qd, active, log = solve_segments(
+            system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_controller, max_steps,
+            adjoint, throw, progress_meter, baumgarte, projection, events, int(max_segments),
+            event_root_finder, check_in_jit, constraint_tolerance,
+        )
+        return Trajectory.from_states(system, ts_out, q, qd, args, active=active, events=log)
     return _solve(
         system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat, max_steps,
         adjoint, event, throw, progress_meter, baumgarte, projection, check_in_jit,

@@ -147,50 +147,62 @@ class System(eqx.Module):
     # ----------------------------------------------------------------- mechanics at a state
     def lagrangian_value(self, q, qd, t=0.0, args=None):
         """``L(q, q̇, t)``."""
+        self.check(q, qd, t, args)
         return _mechanics.lagrangian_value(self, q, qd, t, args)
 
     def mass_matrix(self, q, qd, t=0.0, args=None):
         """``M = ∂²L/∂q̇²``, shape (n, n)."""
+        self.check(q, qd, t, args)
         return _mechanics.mass_matrix(self, q, qd, t, args)
 
     def generalized_forces(self, q, qd, t=0.0, args=None):
         """``F = ∂L/∂q − (∂²L/∂q̇∂q) q̇ − ∂²L/∂q̇∂t − ∂R/∂q̇ + Q``, shape (n,)."""
+        self.check(q, qd, t, args)
         return _mechanics.generalized_forces(self, q, qd, t, args)
 
     def momenta(self, q, qd, t=0.0, args=None):
         """``p = ∂L/∂q̇``."""
+        self.check(q, qd, t, args)
         return _mechanics.momenta(self, q, qd, t, args)
 
     def energy(self, q, qd, t=0.0, args=None):
         """Energy function ``h = q̇·∂L/∂q̇ − L``."""
+        self.check(q, qd, t, args)
         return _mechanics.energy(self, q, qd, t, args)
 
     def accelerations(self, q, qd, t=0.0, args=None):
         """``q̈`` from the (constrained) equations of motion."""
+        self.check(q, qd, t, args)
         return _kkt.accelerations_and_multipliers(self, q, qd, t, args)[0]
 
     def multipliers(self, q, qd, t=0.0, args=None):
         """Holonomic multipliers ``λ`` (m_h,) in ``M q̈ = F + Jᵀλ + Aᵀμ``."""
+        self.check(q, qd, t, args)
         return _kkt.accelerations_and_multipliers(self, q, qd, t, args)[1]
 
     def velocity_multipliers(self, q, qd, t=0.0, args=None):
         """Velocity-constraint multipliers ``μ`` (m_v,) in ``M q̈ = F + Jᵀλ + Aᵀμ``."""
+        self.check(q, qd, t, args)
         return _kkt.accelerations_and_multipliers(self, q, qd, t, args)[2]
 
     def constraint_forces(self, q, qd, t=0.0, args=None):
         """Generalized constraint forces ``Qᶜ = Jᵀλ + Aᵀμ``, shape (n,)."""
+        self.check(q, qd, t, args)
         _, lam, mu = _kkt.accelerations_and_multipliers(self, q, qd, t, args)
         rows, _ = _constraints.constraint_rows(self, q, qd, t, args)
         return rows.T @ jnp.concatenate([lam, mu])
 
     def constraint_residuals(self, q, qd, t=0.0, args=None):
         """``(f, ḟ, g)``: holonomic position and velocity residuals, velocity-constraint residual."""
+        self.check(q, qd, t, args)
         return _constraints.constraint_residuals(self, q, qd, t, args)
 
     def dissipated_power(self, q, qd, t=0.0, args=None):
         """``q̇·∂R/∂q̇``: power removed by dissipation."""
+        self.check(q, qd, t, args)
         return _mechanics.dissipated_power(self, q, qd, t, args)
 
     def input_power(self, q, qd, t=0.0, args=None):
         """``q̇·Q``: power delivered by external forces."""
+        self.check(q, qd, t, args)
         return _mechanics.input_power(self, q, qd, t, args)
