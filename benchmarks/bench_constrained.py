@@ -26,7 +26,7 @@ import jax.numpy as jnp
 
 import jaxlag as jl
 
-from .bench_unconstrained import NSTEPS, solve_hand, solve_jaxlag
+from .bench_unconstrained import NSTEPS, hand, with_jaxlag
 
 G = 9.81
 SIZES = (2, 5) if common.QUICK else (2, 5, 10, 20)
@@ -88,11 +88,14 @@ def run():
     for n in SIZES:
         q0, qd0 = initial_state(n)
         cs = [
-            common.compile_contender("hand KKT, augmented LU", lambda q, v: solve_hand(hand_augmented, q, v), q0, qd0),
-            common.compile_contender("hand Schur (reference)", lambda q, v: solve_hand(hand_schur, q, v), q0, qd0),
-            common.compile_contender("jaxlag, projection=None", lambda q, v: solve_jaxlag(system, q, v, projection=None), q0, qd0),
-            common.compile_contender("jaxlag, projection=None, no check", lambda q, v: solve_jaxlag(system, q, v, projection=None, check_initial_state=False), q0, qd0),
-            common.compile_contender("jaxlag, default Projection()", lambda q, v: solve_jaxlag(system, q, v), q0, qd0),
+            common.compile_contender(name, fn, q0, qd0) for name, fn in [
+                ("hand KKT, augmented LU", hand(hand_augmented)),
+                ("hand Schur (reference)", hand(hand_schur)),
+                ("jaxlag, projection=None", with_jaxlag(system, projection=None)),
+                ("jaxlag, projection=None, no check",
+                 with_jaxlag(system, projection=None, check_initial_state=False)),
+                ("jaxlag, default Projection()", with_jaxlag(system)),
+            ]
         ]
         common.time_alternating(cs)
         lu, ref = cs[0], cs[1]
@@ -101,7 +104,8 @@ def run():
                          c.median / ref.median, c.median / lu.median, c.compile_s,
                          100 * common.spread(c)])
         q_ref = ref.compiled(*ref.args)
-        errors[n] = max(common.max_abs_diff(c.compiled(*c.args), q_ref) for c in (cs[0], cs[2], cs[3]))
+        errors[n] = max(common.max_abs_diff(c.compiled(*c.args), q_ref)
+                        for c in (cs[0], cs[2], cs[3]))
         drift[n] = (float(jnp.max(jnp.abs(distance_constraints(q_ref)))),
                     float(jnp.max(jnp.abs(distance_constraints(cs[4].compiled(*cs[4].args))))))
         for c in cs[2:4]:

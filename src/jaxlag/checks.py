@@ -61,8 +61,14 @@ def _diagnostics(system, q, qd, t, args, tolerance):
         wrong_sign = jnp.any(active & unilateral & (lam < -tolerance * scale))
     else:
         wrong_sign = jnp.asarray(False)
+    off_diagonal = mass - jnp.diag(jnp.diagonal(mass))
+    not_diagonal = system.diagonal_mass & ~(
+        jnp.max(jnp.abs(off_diagonal)) <= 1e-12 * jnp.max(jnp.abs(mass))
+    )
     return dict(
         finite=jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(qd)),
+        not_diagonal=not_diagonal,
+        mass=mass,
         eigenvalues=eigenvalues,
         f=jnp.where(active, f, 0.0),
         f_dot=jnp.where(active, f_dot, 0.0),
@@ -84,6 +90,7 @@ def _failures(d, least_squares: bool, tolerance: float):
     rank = jnp.sum(sv > CONSTRAINT_RCOND * sv[0])
     return dict(
         nonfinite=~d["finite"],
+        not_diagonal=d["not_diagonal"],
         mass=~(eig[0] > MASS_RCOND * jnp.max(jnp.abs(eig))),
         rank=jnp.asarray(False)
         if least_squares or d["rows"].shape[0] == 0
@@ -128,6 +135,11 @@ def validate_initial_state(system, q, qd, t, args, tolerance: float):
                 f"state (eigenvalues {np.asarray(d['eigenvalues'])}). The Lagrangian is degenerate: "
                 "every coordinate needs a kinetic term with a positive coefficient."
             )
+        if bool(fail["not_diagonal"]):
+            raise ValueError(
+                "The system declares diagonal_mass=True, but M = ∂²L/∂q̇² has off-diagonal "
+                f"entries at the initial state:\n{np.asarray(d['mass'])}"
+            )
         if bool(fail["rank"]):
             m_h = d["f"].shape[0]
             names = _dependent_rows(np.asarray(d["rows"]), m_h)
@@ -164,6 +176,11 @@ def validate_initial_state(system, q, qd, t, args, tolerance: float):
         fail["mass"],
         "jaxlag: the mass matrix M = ∂²L/∂q̇² is singular or not positive definite at the "
         "initial state (degenerate Lagrangian).",
+    )
+    q = eqx.error_if(
+        q,
+        fail["not_diagonal"],
+        "jaxlag: the system declares diagonal_mass=True, but M has off-diagonal entries.",
     )
     q = eqx.error_if(
         q,

@@ -40,16 +40,18 @@ def deactivate(rows, rhs, active):
     return rows * weight[:, None], rhs * weight, jnp.diag(1.0 - weight)
 
 
-def solve_kkt(mass, force, rows, rhs, least_squares: bool = False, active=None):
+def solve_kkt(mass, force, rows, rhs, least_squares: bool = False, active=None,
+              diagonal_mass: bool = False):
     """Solve ``M q̈ = F + Gᵀ Λ``, ``G q̈ = c``; return ``(q̈, Λ)``.
 
-    ``active`` (m,) optionally switches constraints off (their multipliers are zero).
+    ``active`` (m,) optionally switches constraints off (their multipliers are zero);
+    ``diagonal_mass`` skips the factorization of ``M`` (``M⁻¹ = 1/diag(M)``).
     """
     m = rows.shape[0]
     if m == 0:
-        return solve_spd(mass, force), jnp.zeros((0,), force.dtype)
+        return solve_spd(mass, force, diagonal_mass), jnp.zeros((0,), force.dtype)
     rows, rhs, pad = deactivate(rows, rhs, active)
-    solved = solve_spd(mass, jnp.concatenate([force[:, None], rows.T], axis=1))
+    solved = solve_spd(mass, jnp.concatenate([force[:, None], rows.T], axis=1), diagonal_mass)
     free, minv_gt = solved[:, 0], solved[:, 1:]
     schur = rows @ minv_gt
     if pad is not None:
@@ -74,5 +76,6 @@ def accelerations_and_multipliers(system, q, qd, t, args, baumgarte=None, active
     if active is not None:
         active = jnp.concatenate([jnp.asarray(active, q.dtype),
                                   jnp.ones((rows.shape[0] - m_h,), q.dtype)])
-    qdd, multipliers = solve_kkt(mass, force, rows, rhs, system.least_squares, active)
+    qdd, multipliers = solve_kkt(mass, force, rows, rhs, system.least_squares, active,
+                                 system.diagonal_mass)
     return qdd, multipliers[:m_h], multipliers[m_h:]

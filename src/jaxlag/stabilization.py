@@ -29,7 +29,7 @@ import jax.numpy as jnp
 
 from . import constraints as _constraints
 from .kkt import deactivate
-from .linalg import solve_psd_least_squares, solve_spd
+from .linalg import solve_psd_least_squares, solve_spd, spd_solver
 from .mechanics import _as_time, mass_matrix
 
 
@@ -44,13 +44,14 @@ class Baumgarte(eqx.Module):
     beta: float = 10.0
 
 
-def _schur_correction(system, mass, rows, residual, active=None):
+def _schur_correction(system, solve_mass, rows, residual, active=None):
     """``M⁻¹Gᵀ (G M⁻¹ Gᵀ)⁻¹ r``: the M-weighted minimal change that removes the linear residual.
 
-    Rows whose ``active`` entry is zero are left out (see :func:`jaxlag.kkt.deactivate`).
+    ``solve_mass`` applies ``M⁻¹`` (factored once per projection). Rows whose ``active`` entry
+    is zero are left out (see :func:`jaxlag.kkt.deactivate`).
     """
     rows, residual, pad = deactivate(rows, residual, active)
-    minv_gt = solve_spd(mass, rows.T)
+    minv_gt = solve_mass(rows.T)
     schur = rows @ minv_gt
     if pad is not None:
         schur = schur + pad
@@ -63,21 +64,21 @@ def project_state(system, q, qd, t, args, newton_steps: int = 1, active=None,
                   refresh_mass: bool = False):
     """Project ``(q, q̇)`` onto ``f = 0``, ``ḟ = 0``, ``g = 0`` in the metric of ``M(q, q̇)``.
 
-    The metric is ``M`` at the incoming state, held fixed through the Newton iterations, so
-    the position correction is the mass-weighted minimal one to first order in its size. With
-    ``refresh_mass`` the velocity projection uses ``M`` at the corrected position (exactly
-    minimal there); per-step projection skips that, as the correction is at round-off level.
-    ``active`` (m_h,) optionally restricts the holonomic constraints projected onto.
+    The metric is ``M`` at the incoming state, factored once and held fixed through the Newton
+    iterations, so the position correction is the mass-weighted minimal one to first order in
+    its size. With ``refresh_mass`` the velocity projection uses ``M`` at the corrected position
+    (exactly minimal there); per-step projection skips that, as the correction is at the level
+    of the local error. ``active`` (m_h,) optionally restricts the holonomic constraints.
     """
     t = _as_time(t, q)
-    mass = mass_matrix(system, q, qd, t, args)
+    solve_mass = spd_solver(mass_matrix(system, q, qd, t, args), system.diagonal_mass)
     if system.holonomic is not None:
         for _ in range(newton_steps):
             f = _constraints.holonomic_residual(system, q, t, args)
             jac = jax.jacfwd(lambda x: _constraints.holonomic_residual(system, x, t, args))(q)
-            q = q - _schur_correction(system, mass, jac, f, active)
+            q = q - _schur_correction(system, solve_mass, jac, f, active)
         if refresh_mass:
-            mass = mass_matrix(system, q, qd, t, args)
+            solve_mass = spd_solver(mass_matrix(system, q, qd, t, args), system.diagonal_mass)
     rows, residual = [], []
     if system.holonomic is not None:
         def f_of(x, s):
@@ -97,7 +98,7 @@ def project_state(system, q, qd, t, args, newton_steps: int = 1, active=None,
             active = jnp.concatenate(
                 [jnp.asarray(active, q.dtype), jnp.ones((rows.shape[0] - active.shape[0],), q.dtype)]
             )
-        qd = qd - _schur_correction(system, mass, rows, residual, active)
+        qd = qd - _schur_correction(system, solve_mass, rows, residual, active)
     return q, qd
 
 

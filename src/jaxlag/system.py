@@ -30,6 +30,8 @@ class System(eqx.Module):
     - ``forces``: external generalized forces ``Q(q, qd, [t], [args]) -> (n,)``.
     - ``least_squares``: accept redundant constraints (singular ``J M⁻¹ Jᵀ``) and report the
       minimum-norm multipliers instead of raising.
+    - ``diagonal_mass``: declare ``M`` diagonal (Cartesian particles): ``M⁻¹`` is then a division,
+      not a Cholesky factorization. Checked at the initial state.
     - ``unilateral``: indices of holonomic constraints that are one-sided, ``f_i(q, t) ≥ 0``
       with ``λ_i ≥ 0`` while in contact (a particle on the outside of a sphere ``r − R ≥ 0``,
       a string ``l − r ≥ 0``). :func:`~jaxlag.simulate` releases such a constraint when its
@@ -47,6 +49,7 @@ class System(eqx.Module):
     forces: UserFunction | None
     least_squares: bool = eqx.field(static=True)
     unilateral: tuple = eqx.field(static=True)
+    diagonal_mass: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -58,6 +61,7 @@ class System(eqx.Module):
         forces: Callable | None = None,
         least_squares: bool = False,
         unilateral=(),
+        diagonal_mass: bool = False,
     ):
         self.lagrangian = wrap_state_function(lagrangian, "lagrangian")
         self.holonomic = wrap_configuration_function(holonomic, "holonomic constraint function")
@@ -67,6 +71,7 @@ class System(eqx.Module):
         self.dissipation = wrap_state_function(dissipation, "dissipation function")
         self.forces = wrap_state_function(forces, "force function")
         self.least_squares = bool(least_squares)
+        self.diagonal_mass = bool(diagonal_mass)
         if isinstance(unilateral, int):
             unilateral = (unilateral,)
         self.unilateral = tuple(sorted({int(i) for i in unilateral}))
