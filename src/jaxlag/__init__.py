@@ -7,6 +7,7 @@ compiled, differentiable diffrax simulation. Sign convention everywhere:
 
 from .conventions import UserFunction
 from .events import Event, EventLog
+from .fit import Bounded, Experiment, FitResult, Positive, fit, least_squares_loss
 from .kkt import solve_kkt
 from .simulate import EquationsOfMotion, simulate
 from .stabilization import Baumgarte, Projection, ProjectedSolver, consistent_initial_state
@@ -15,7 +16,13 @@ from .trajectory import Trajectory
 
 __all__ = [
     "Baumgarte",
+    "Bounded",
     "EquationsOfMotion",
+    "Experiment",
+    "FitResult",
+    "Positive",
+    "fit",
+    "least_squares_loss",
     "Event",
     "EventLog",
     "Projection",

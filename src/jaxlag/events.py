@@ -34,7 +34,7 @@ from .checks import initial_activity, validate_initial_state
 from .constraints import holonomic_residual
 from .conventions import wrap_event_function
 from .kkt import accelerations_and_multipliers
-from .stabilization import ProjectedSolver, project_state
+from .stabilization import project_state, wrap_for_projection
 
 _NO_EVENT, _END, _RELEASE, _CONTACT, _USER = -1, 0, 1, 2, 3
 KIND_NAMES = {_NO_EVENT: "none", _END: "end", _RELEASE: "release", _CONTACT: "contact",
@@ -164,7 +164,7 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
         segment = _Segment(system, tuple(events), unilateral, active, t_s, locks)
         this_solver = solver
         if projection is not None:
-            this_solver = ProjectedSolver(solver, system, projection, active)
+            this_solver = wrap_for_projection(solver, system, projection, adjoint, active)
         solution = diffrax.diffeqsolve(
             diffrax.ODETerm(EquationsOfMotion(system, baumgarte, active)),
             this_solver,

@@ -14,7 +14,7 @@ from .checks import _is_concrete, validate_initial_state
 from .events import Event, default_root_finder, solve_segments
 from .kkt import accelerations_and_multipliers
 from .mechanics import unconstrained_accelerations
-from .stabilization import Baumgarte, Projection, ProjectedSolver
+from .stabilization import Baumgarte, Projection, wrap_for_projection
 from .system import System
 from .trajectory import Trajectory
 
@@ -61,7 +61,7 @@ def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, save
     if check:
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
     if projection is not None:
-        solver = ProjectedSolver(solver, system, projection)
+        solver = wrap_for_projection(solver, system, projection, adjoint)
     solution = diffrax.diffeqsolve(
         diffrax.ODETerm(EquationsOfMotion(system, baumgarte)),
         solver,

@@ -130,6 +130,12 @@ class ProjectedSolver(diffrax.AbstractWrappedSolver):
     active: Any = None
 
     @property
+    def scan_kind(self):
+        # diffrax's ForwardMode reads this on Runge–Kutta solvers (isinstance is forwarded to the
+        # inner solver); see wrap_for_projection.
+        return getattr(self.solver, "scan_kind", None)
+
+    @property
     def term_structure(self):
         return self.solver.term_structure
 
@@ -188,3 +194,17 @@ def consistent_initial_state(system, q0, qd0, t0=0.0, args=None, *, newton_steps
             "(constraints inconsistent, or the starting guess is too far from any solution).",
         )
     return q, qd
+
+
+def wrap_for_projection(solver, system, projection, adjoint, active=None):
+    """``ProjectedSolver(solver, ...)``, made compatible with ``diffrax.ForwardMode``.
+
+    ForwardMode needs Runge–Kutta stages scanned with ``scan_kind="lax"`` (it cannot differentiate
+    the checkpointed scan in forward mode) and sets that itself on the solver it is handed; a
+    wrapped solver hides the field, so it is set here on the inner solver.
+    """
+    if (isinstance(adjoint, diffrax.ForwardMode)
+            and isinstance(solver, (diffrax.AbstractRungeKutta, diffrax.AbstractSRK))
+            and solver.scan_kind is None):
+        solver = eqx.tree_at(lambda s: s.scan_kind, solver, "lax", is_leaf=lambda x: x is None)
+    return ProjectedSolver(solver, system, projection, active)

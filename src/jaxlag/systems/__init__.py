@@ -1,0 +1,68 @@
+"""Ready-made, documented models: each function returns a :class:`jaxlag.System`.
+
+Parameters are read from ``args``, a dict whose missing keys take the model's defaults
+(``model.defaults``; :func:`default_args` gives an editable copy), so ``args=None`` simulates the
+default model and ``jax.grad`` flows through any parameter you pass. Unknown keys are an error.
+Each docstring states the coordinates, the constraints (and the meaning of their multipliers)
+and the closed forms the model is tested against.
+
+=====================================  =========================================================
+model                                   forms / coordinates
+=====================================  =========================================================
+:func:`simple_pendulum`                 ``(θ,)`` generalized; ``(x, y)`` Cartesian
+:func:`double_pendulum`                 ``(θ₁, θ₂)``; ``(x₁, y₁, x₂, y₂)``
+:func:`n_link_pendulum`                 ``(θ₁..θ_n)``; ``(x₁, y₁, …)``
+:func:`spherical_pendulum`              ``(θ, φ)``; ``(x, y, z)``
+:func:`free_chain`                      ``(x₁, …, x_n)`` with rigid links, 2-D or 3-D
+:func:`cart_pole`                       ``(x, θ)`` with an input force on the cart
+:func:`bead_on_hoop`                    ``(θ,)``; ``(x, y, z)``; optionally spinning
+:func:`bead_on_rotating_parabola`       ``(r,)``; ``(r, φ, z)`` with a rheonomic drive
+:func:`particle_on_cone`                ``(r, φ)``; ``(r, θ, φ)``; ``(x, y, z)``
+:func:`particle_on_sphere`              ``(r, θ, φ)``; ``(x, y, z)``; optionally one-sided
+:func:`spiral`                          ``(r, θ)`` on ``r = aθ``; ``(θ,)``
+:func:`kepler`                          ``(r, φ)``; ``(x, y)``
+:func:`charged_particle`                ``(x, y, z)`` in uniform ``E``, ``B``
+:func:`rolling_disk`                    ``(x, y, φ, θ)``, nonholonomic
+:func:`disk_on_incline`                 ``(s, θ)`` with the rolling constraint ``s = Rθ``
+:func:`knife_edge`                      ``(x, y, θ)``, nonholonomic, on an incline
+=====================================  =========================================================
+"""
+
+from ._common import default_args
+from .fields import charged_particle, kepler
+from .pendulums import (
+    cart_pole,
+    double_pendulum,
+    free_chain,
+    n_link_pendulum,
+    simple_pendulum,
+    spherical_pendulum,
+)
+from .rolling import disk_on_incline, knife_edge, rolling_disk
+from .surfaces import (
+    bead_on_hoop,
+    bead_on_rotating_parabola,
+    particle_on_cone,
+    particle_on_sphere,
+    spiral,
+)
+
+__all__ = [
+    "bead_on_hoop",
+    "bead_on_rotating_parabola",
+    "cart_pole",
+    "charged_particle",
+    "default_args",
+    "disk_on_incline",
+    "double_pendulum",
+    "free_chain",
+    "kepler",
+    "knife_edge",
+    "n_link_pendulum",
+    "particle_on_cone",
+    "particle_on_sphere",
+    "rolling_disk",
+    "simple_pendulum",
+    "spherical_pendulum",
+    "spiral",
+]

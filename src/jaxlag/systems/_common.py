@@ -1,0 +1,51 @@
+"""Shared plumbing of the ready-made models: parameters with defaults, form checks."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from types import MappingProxyType
+from typing import Callable
+
+
+def model(defaults: dict, *, allow_extra: bool = False) -> Callable:
+    """Decorate a model factory: record its default parameters as ``factory.defaults``."""
+
+    def wrap(factory):
+        factory.defaults = MappingProxyType(dict(defaults))
+        factory.allow_extra = allow_extra
+        return factory
+
+    return wrap
+
+
+def parameters(factory, args) -> dict:
+    """``args`` merged over ``factory.defaults``; unknown names are an error (typos)."""
+    defaults = factory.defaults
+    if args is None:
+        return dict(defaults)
+    if not isinstance(args, Mapping):
+        raise TypeError(
+            f"jaxlag.systems.{factory.__name__} reads its parameters from a dict `args` with keys "
+            f"{sorted(defaults)} (missing keys take their defaults); got {type(args).__name__}."
+        )
+    if not factory.allow_extra:
+        unknown = sorted(set(args) - set(defaults))
+        if unknown:
+            raise KeyError(
+                f"jaxlag.systems.{factory.__name__}: unknown parameter(s) {unknown}; its "
+                f"parameters are {sorted(defaults)}."
+            )
+    return {**defaults, **args}
+
+
+def check_form(name: str, form: str, allowed: tuple[str, ...]) -> str:
+    if form not in allowed:
+        raise ValueError(f"jaxlag.systems.{name}: form must be one of {allowed}; got {form!r}.")
+    return form
+
+
+def default_args(factory) -> dict:
+    """A fresh dict of a model's default parameters (edit it and pass it as ``args``)."""
+    if not hasattr(factory, "defaults"):
+        raise TypeError(f"{factory!r} is not a jaxlag.systems model.")
+    return dict(factory.defaults)
