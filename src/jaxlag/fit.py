@@ -129,6 +129,7 @@ class FitResult(eqx.Module):
     ``standard_errors``: same structure; ``covariance``: (p, p) over ``jax.flatten_util.ravel_pytree``
     order of ``params``. ``initial_states``: fitted ``(q0, qd0)`` per experiment when estimated.
     ``loss_history``: ``ℓ`` after each optimizer step (index 0 is the starting point).
+    ``segment_states``: ``(q, qd)`` of shape (E, S, n), the state each shooting segment starts from.
     """
 
     params: Any
@@ -139,6 +140,7 @@ class FitResult(eqx.Module):
     initial_states: Any
     num_steps: int
     converged: bool
+    segment_states: Any = None
 
 
 # ----------------------------------------------------------------------------- model
@@ -175,6 +177,7 @@ class _Model(eqx.Module):
     segments: int = eqx.field(static=True)
     estimate_initial_state: bool = eqx.field(static=True)
     simulate_kwargs: tuple = eqx.field(static=True)
+    periodic: tuple = eqx.field(static=True, default=())
 
     def physical(self, flat):
         params = self.spec.unravel(flat)
@@ -229,7 +232,13 @@ class _Model(eqx.Module):
         pieces = [r.ravel()]
         if self.segments > 1:
             w = data["continuity_weight"]
-            pieces.append((w * (q_end[:, :-1] - states[0][:, 1:])).ravel())
+            gap = q_end[:, :-1] - states[0][:, 1:]
+            if self.periodic:
+                # Angles meet modulo 2π: wrap the gap of periodic coordinates into [−π, π).
+                index = jnp.asarray(self.periodic)
+                wrapped = jnp.mod(gap[..., index] + jnp.pi, 2 * jnp.pi) - jnp.pi
+                gap = gap.at[..., index].set(wrapped)
+            pieces.append((w * gap).ravel())
             pieces.append((w * (qd_end[:, :-1] - states[1][:, 1:])).ravel())
         return jnp.concatenate(pieces)
 
@@ -323,6 +332,7 @@ def fit(
     shooting_segments: int = 1,
     continuity_weight: float = 10.0,
     segment_states=None,
+    periodic_coordinates=(),
     progress: bool = False,
     simulate_kwargs: dict | None = None,
 ) -> FitResult:
@@ -345,6 +355,8 @@ def fit(
     - ``shooting_segments``, ``continuity_weight``, ``segment_states``: multiple shooting; the
       optional ``segment_states = (q, qd)`` of shape (E, S, n) are the starting guesses of the
       segment states (default: a simulation with the starting parameters).
+      ``periodic_coordinates``: indices of angle coordinates whose continuity gaps are taken
+      modulo 2π (so segment states may be given in any branch, e.g. from inverse kinematics).
     - ``progress``: show a tqdm progress bar (``pip install tqdm``).
     - ``simulate_kwargs``: passed to :func:`~jaxlag.simulate` (solver, tolerances, ...).
 
@@ -379,7 +391,8 @@ def fit(
     spec = _ParamSpec(tuple(params), tuple(jnp.shape(v) for v in params.values()))
     kwargs_key = tuple(sorted(simulate_kwargs.items(), key=lambda kv: kv[0]))
     model = _Model(system, observe, transforms, spec, int(shooting_segments),
-                   bool(estimate_initial_state), kwargs_key)
+                   bool(estimate_initial_state), kwargs_key,
+                   tuple(int(i) for i in periodic_coordinates))
     segments = model.segments
     ts_seg, starts = _segment_grid(batch.ts, segments)
     num_experiments = batch.ts.shape[0]
@@ -451,7 +464,8 @@ def fit(
     standard_errors = spec.unravel(jnp.sqrt(jnp.diag(covariance))[:p])
     states = model.states(free, fixed_states)
     return FitResult(fitted, standard_errors, covariance[:p, :p], residual_std,
-                     np.asarray(history), (states[0][:, 0], states[1][:, 0]), steps, converged)
+                     np.asarray(history), (states[0][:, 0], states[1][:, 0]), steps, converged,
+                     states)
 
 
 def _tick(bar, loss):
