@@ -1,12 +1,13 @@
-"""jaxlag demo: a particle sliding off a sphere, its normal force, and g recovered by gradients.
+"""jaxlag demo: a particle sliding off a sphere — motion, normal force, release, and g and R
+recovered from noisy camera data.
 
-A particle starts at rest near the top of a sphere of radius R. We keep the radial coordinate
-r as a redundant coordinate and impose r = R as a holonomic constraint; the multiplier λ is the
-normal force, λ = m g (3 cos θ − 2 cos θ₀). The particle would leave the sphere where λ = 0,
-at cos θ = (2/3) cos θ₀ (arccos(2/3) ≈ 48.19° from rest at the very top).
-
-Then, pretending the simulated angles are measurements, we recover g by gradient descent
-through the whole constrained simulation with optax.
+1. Simulate. A particle starts at rest near the top of a sphere of radius R. The radial coordinate
+   r is kept and r − R ≥ 0 imposed as a *unilateral* constraint: its multiplier λ is the normal
+   force, λ = m g (3 cos θ − 2 cos θ₀), and the particle leaves the sphere when λ reaches zero, at
+   cos θ = (2/3) cos θ₀ (arccos(2/3) ≈ 48.19° from rest at the very top). jaxlag finds that
+   instant with an event and continues with free flight.
+2. Fit. From noisy camera positions (x, y) of the particle while it is on the sphere, recover g
+   and R with Levenberg–Marquardt through the constrained simulation, with standard errors.
 
 Run:  python examples/demo.py     (writes sphere_demo.png next to this file)
 """
@@ -16,7 +17,6 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 import jaxlag as jl
 
@@ -31,54 +31,52 @@ def lagrangian(q, qd, args):
 
 
 def on_sphere(q, args):
-    return jnp.array([q[0] - args["R"]])
+    return jnp.array([q[0] - args["R"]])  # r − R ≥ 0 as a unilateral constraint
+
+
+def camera(q, qd):
+    """What a camera sees: the Cartesian position (x, y) of the particle."""
+    return q[0] * jnp.array([jnp.sin(q[1]), jnp.cos(q[1])])
 
 
 def main():
-    system = jl.System(lagrangian, holonomic=on_sphere)
-    args = {"m": 1.0, "g": 9.81, "R": 2.0}
-    theta0 = 0.01
-    q0, qd0 = jnp.array([2.0, theta0]), jnp.array([0.0, 0.0])
-    ts = jnp.linspace(0.0, 3.0, 601)
+    true = {"m": 1.0, "g": 9.81, "R": 2.0}
+    theta0 = 0.05
+    q0, qd0 = jnp.array([true["R"], theta0]), jnp.array([0.0, 0.0])
+    ts = jnp.linspace(0.0, 2.6, 261)
 
-    traj = jl.simulate(system, q0, qd0, ts, args=args)
+    # --- 1. simulate: on the sphere, release at λ = 0, free flight ------------------------------
+    sliding = jl.System(lagrangian, holonomic=on_sphere, unilateral=0)
+    traj = jl.simulate(sliding, q0, qd0, ts, args=true)
     theta = traj.q[:, 1]
+    on = traj.active[:, 0]
     normal_force = traj.multipliers[:, 0]
-    closed_form = args["m"] * args["g"] * (3 * jnp.cos(theta) - 2 * jnp.cos(theta0))
-    print(f"steps taken: {int(traj.stats['num_steps'])}")
-    print(f"max |λ − m g (3cos θ − 2cos θ0)|  = {float(jnp.max(jnp.abs(normal_force - closed_form))):.2e}")
-    print(f"max |r − R| (constraint residual) = {float(jnp.max(jnp.abs(traj.q[:, 0] - 2.0))):.2e}")
-    print(f"energy drift max |h − h0|        = {float(jnp.max(jnp.abs(traj.energy - traj.energy[0]))):.2e}")
-
-    # The normal force changes sign between two save points: interpolate the crossing.
-    i = int(np.argmax(np.asarray(normal_force) < 0))
-    assert i > 0, "the particle did not reach the departure angle: simulate longer"
-    a, b = float(normal_force[i - 1]), float(normal_force[i])
-    theta_leave = float(theta[i - 1] + (theta[i] - theta[i - 1]) * a / (a - b))
+    closed_form = true["m"] * true["g"] * (3 * jnp.cos(theta) - 2 * np.cos(theta0))
+    t_release, theta_release = float(traj.events.time[0]), float(traj.events.q[0, 1])
     expected = float(np.arccos(2.0 / 3.0 * np.cos(theta0)))
-    print(f"normal force vanishes at θ = {np.degrees(theta_leave):.4f}°"
-          f" (closed form arccos(2/3 cos θ0) = {np.degrees(expected):.4f}°)")
+    print(f"events: {traj.events.kinds()[:2]}")
+    print(f"normal force vs m g (3cos θ − 2cos θ0) while on the sphere: max error "
+          f"{float(jnp.max(jnp.abs(jnp.where(on, normal_force - closed_form, 0.0)))):.1e}")
+    print(f"released at t = {t_release:.6f} s, θ = {np.degrees(theta_release):.8f}° "
+          f"(closed form arccos(2/3 cos θ0) = {np.degrees(expected):.8f}°)")
+    print(f"energy drift across the release: {float(jnp.max(jnp.abs(traj.energy - traj.energy[0]))):.1e}")
 
-    # --- recover g from the 'measured' angles (first 1.5 s, while still on the sphere) -------
-    fit_ts = ts[ts <= 1.5]
-    observed = jl.simulate(system, q0, qd0, fit_ts, args=args).q[:, 1]
-
-    @jax.jit
-    def loss(g):
-        model = jl.simulate(system, q0, qd0, fit_ts, args={**args, "g": g})
-        return jnp.mean((model.q[:, 1] - observed) ** 2)
-
-    g = jnp.asarray(7.0)
-    optimizer = optax.adam(0.3)
-    state = optimizer.init(g)
-    value_and_grad = jax.jit(jax.value_and_grad(loss))
-    for step in range(150):
-        value, grad = value_and_grad(g)
-        updates, state = optimizer.update(grad, state)
-        g = optax.apply_updates(g, updates)
-        if step % 30 == 0:
-            print(f"  fit step {step:3d}: g = {float(g):.6f}, loss = {float(value):.3e}")
-    print(f"recovered g = {float(g):.6f} (true 9.81)")
+    # --- 2. fit g and R from noisy camera data taken while the particle is on the sphere ----------
+    window = ts[ts < t_release - 0.05]
+    clean = jax.vmap(lambda q: camera(q, None))(traj.q[: window.shape[0]])
+    noise = 0.002
+    observed = clean + noise * np.random.default_rng(0).standard_normal(clean.shape)
+    on_the_sphere = jl.System(lagrangian, holonomic=on_sphere)  # bilateral while in contact
+    guess = {"g": 8.0, "R": 2.4}
+    result = jl.fit(on_the_sphere, guess, jl.Experiment(window, observed, q0, qd0),
+                    observe=camera, args={"m": 1.0},
+                    transforms={"g": jl.Positive(), "R": jl.Positive()})
+    print(f"fit: Levenberg–Marquardt, {result.num_steps} steps, residual std "
+          f"{float(result.residual_std):.4f} (noise {noise})")
+    for name in ("g", "R"):
+        value, se = float(result.params[name]), float(result.standard_errors[name])
+        print(f"  {name}: true {true[name]:.4f}   start {guess[name]:.4f}   recovered {value:.4f} "
+              f"± {se:.4f}   ({(value - true[name]) / se:+.2f} standard errors)")
 
     try:
         import matplotlib
@@ -88,16 +86,32 @@ def main():
     except ImportError:
         print("matplotlib not installed: skipping the plot (pip install 'jaxlag[examples]')")
         return
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
-    ax1.plot(ts, np.degrees(theta))
-    ax1.axhline(np.degrees(expected), ls="--", c="k", label="arccos(2/3 cos θ0)")
-    ax1.set(xlabel="t [s]", ylabel="θ [deg]", title="angle from the top")
-    ax1.legend()
-    ax2.plot(np.degrees(theta), normal_force, label="λ (jaxlag multiplier)")
-    ax2.plot(np.degrees(theta), closed_form, "--", label="m g (3cos θ − 2cos θ0)")
-    ax2.axhline(0.0, c="k", lw=0.5)
-    ax2.set(xlabel="θ [deg]", ylabel="normal force [N]", title="constraint force")
-    ax2.legend()
+    fitted_args = {"m": 1.0, **result.params}
+    fitted = jax.vmap(lambda q: camera(q, None))(
+        jl.simulate(on_the_sphere, *jl.consistent_initial_state(on_the_sphere, q0, qd0, 0.0,
+                                                                fitted_args),
+                    window, args=fitted_args).q)
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    xy = jax.vmap(lambda q: camera(q, None))(traj.q)
+    circle = np.linspace(0, 2 * np.pi, 200)
+    axes[0].plot(true["R"] * np.sin(circle), true["R"] * np.cos(circle), "k-", lw=0.5)
+    axes[0].plot(xy[on, 0], xy[on, 1], "b-", label="on the sphere")
+    axes[0].plot(xy[~on, 0], xy[~on, 1], "r-", label="free flight")
+    axes[0].plot(*camera(traj.events.q[0], None), "ko", label="release (event)")
+    axes[0].set(aspect="equal", title="path", xlim=(-0.5, 3.5), ylim=(-1.5, 2.5))
+    axes[0].legend(fontsize=8)
+    axes[1].plot(np.degrees(theta), normal_force, label="λ (jaxlag multiplier)")
+    axes[1].plot(np.degrees(theta[on]), closed_form[on], "--", label="m g (3cos θ − 2cos θ0)")
+    axes[1].axvline(np.degrees(expected), c="k", lw=0.5)
+    axes[1].set(xlabel="θ [deg]", ylabel="normal force [N]", title="constraint force")
+    axes[1].legend(fontsize=8)
+    axes[2].plot(window, observed[:, 0], ".", ms=2, label="x observed")
+    axes[2].plot(window, observed[:, 1], ".", ms=2, label="y observed")
+    axes[2].plot(window, fitted[:, 0], "-", label="x fitted")
+    axes[2].plot(window, fitted[:, 1], "-", label="y fitted")
+    axes[2].set(xlabel="t [s]", title=f"fit: g = {float(result.params['g']):.3f}, "
+                                      f"R = {float(result.params['R']):.4f}")
+    axes[2].legend(fontsize=8)
     fig.tight_layout()
     out = Path(__file__).with_name("sphere_demo.png")
     fig.savefig(out, dpi=100)
