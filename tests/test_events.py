@@ -190,3 +190,28 @@ def test_too_few_segments_is_an_error():
     with pytest.raises(Exception, match="max_segments"):
         jl.simulate(system, jnp.array([1.0, 0.0]), jnp.array([0.0, math.sqrt(3.5 * 9.81)]),
                     jnp.linspace(0.0, 2.0, 21), args={"g": 9.81, "l": 1.0}, max_segments=1)
+
+
+def rim_loop(q, qd, args):
+    """A car on the inside of a vertical loop of radius ρ, polar (r, θ), θ from the bottom."""
+    r, th = q
+    rd, thd = qd
+    return 0.5 * (rd**2 + r**2 * thd**2) + args["g"] * r * jnp.cos(th)
+
+
+def test_force_limit_event_on_a_loop():
+    # Inside a loop the track pushes inward: f = ρ − r ≥ 0 with λ = m v²/ρ + m g cos θ ≥ 0.
+    system = jl.System(rim_loop, holonomic=lambda q, args: jnp.array([args["rho"] - q[0]]),
+                       unilateral=0)
+    g, rho, v0 = 9.81, 1.0, 6.0
+    limit = 3.0 * g  # "3 g" on the rider
+    ts = jnp.linspace(0.0, 0.5, 11)
+    # Entering at the bottom the load is v0²/ρ + g = 45.8 > 3g; it drops as the car climbs:
+    # v² = v0² − 2gρ(1 − cos θ) gives λ = v0²/ρ − 2g + 3g cos θ, equal to the limit at
+    # cos θ = (limit − v0²/ρ + 2g)/(3g).
+    traj = jl.simulate(system, jnp.array([rho, 0.0]), jnp.array([0.0, v0 / rho]), ts,
+                       args={"g": g, "rho": rho},
+                       events=[jl.multiplier_limit(0, limit, below=True)])
+    assert traj.events.kinds()[0] == "user"
+    cos_theta = (limit - v0**2 / rho + 2 * g) / (3 * g)
+    np.testing.assert_allclose(math.cos(traj.events.q[0, 1]), cos_theta, atol=1e-10)

@@ -6,7 +6,7 @@ compiled, differentiable diffrax simulation. Sign convention everywhere:
 """
 
 from .conventions import UserFunction
-from .events import Event, EventLog
+from .events import Event, EventLog, multiplier_limit
 from .fit import Bounded, Experiment, FitResult, Positive, fit, least_squares_loss
 from .kkt import solve_kkt
 from .simulate import EquationsOfMotion, simulate
@@ -23,6 +23,7 @@ __all__ = [
     "Positive",
     "fit",
     "least_squares_loss",
+    "multiplier_limit",
     "Event",
     "EventLog",
     "Projection",

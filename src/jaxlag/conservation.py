@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from typing import Any, Callable, Mapping, NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -32,6 +33,7 @@ from . import mechanics as _mechanics
 from .constraints import constraint_rows
 from .conventions import wrap_configuration_function
 from .mechanics import _as_time
+from .simulate import _as_array_leaves
 
 __all__ = [
     "ConservedQuantity",
@@ -49,35 +51,64 @@ __all__ = [
 
 def momenta(system, q, qd, t=0.0, args=None):
     """Generalized momenta ``p = ∂L/∂q̇`` (n,)."""
-    return _mechanics.momenta(system, jnp.asarray(q), jnp.asarray(qd), t, args)
+    return _momenta(system, *_state(q, qd, t, args))
 
 
 def energy(system, q, qd, t=0.0, args=None):
     """Energy function ``h = q̇·∂L/∂q̇ − L`` (the Jacobi integral)."""
-    return _mechanics.energy(system, jnp.asarray(q), jnp.asarray(qd), t, args)
+    return _energy(system, *_state(q, qd, t, args))
+
+
+_momenta = eqx.filter_jit(_mechanics.momenta)
+_energy = eqx.filter_jit(_mechanics.energy)
 
 
 # ----------------------------------------------------------------------------- generators
+class _Translation(eqx.Module):
+    direction: Any
+    num_points: int | None = eqx.field(static=True)
+
+    def __call__(self, q):
+        d = self.direction.shape[0]
+        if q.shape[0] % d or (self.num_points is not None and q.shape[0] != self.num_points * d):
+            raise ValueError(
+                f"translation_generator: q of length {q.shape[0]} is not a layout of "
+                f"{self.num_points or 'N'} points in {d} dimensions."
+            )
+        return jnp.tile(self.direction.astype(q.dtype), q.shape[0] // d)
+
+
+class _Rotation(eqx.Module):
+    axis: Any  # None for planar rotation
+    origin: Any
+    num_points: int | None = eqx.field(static=True)
+
+    def __call__(self, q):
+        d = 2 if self.axis is None else 3
+        if q.shape[0] % d or (self.num_points is not None and q.shape[0] != self.num_points * d):
+            raise ValueError(
+                f"rotation_generator: q of length {q.shape[0]} is not a layout of "
+                f"{self.num_points or 'N'} points in {d} dimensions."
+            )
+        x = q.reshape(-1, d)
+        if self.origin is not None:
+            x = x - self.origin.astype(q.dtype)
+        if d == 2:
+            return jnp.stack([-x[:, 1], x[:, 0]], axis=-1).reshape(-1)
+        return jnp.cross(jnp.broadcast_to(self.axis.astype(q.dtype), x.shape), x).reshape(-1)
+
+
 def translation_generator(direction, num_points: int | None = None) -> Callable:
     """``ξ(q)`` translating every point of a Cartesian layout ``q = (x₁, …, x_N)`` by ``direction``.
 
     ``direction`` has the spatial dimension d; ``q`` must have ``N·d`` entries (``num_points``
     optional, checked if given). Its charge is the total linear momentum along ``direction``.
+    The generator is an equinox Module: its direction is data, not part of a compiled program.
     """
     direction = jnp.asarray(direction, dtype=jnp.result_type(float))
     if direction.ndim != 1:
         raise ValueError(f"direction must be a 1-D vector; got shape {direction.shape}.")
-    d = direction.shape[0]
-
-    def generator(q):
-        if q.shape[0] % d or (num_points is not None and q.shape[0] != num_points * d):
-            raise ValueError(
-                f"translation_generator: q of length {q.shape[0]} is not a layout of "
-                f"{num_points or 'N'} points in {d} dimensions."
-            )
-        return jnp.tile(direction.astype(q.dtype), q.shape[0] // d)
-
-    return generator
+    return _Translation(direction, num_points)
 
 
 def rotation_generator(axis=None, num_points: int | None = None, origin=None) -> Callable:
@@ -85,30 +116,22 @@ def rotation_generator(axis=None, num_points: int | None = None, origin=None) ->
 
     In 3-D (``axis`` a 3-vector) ``ξ_k = axis × (x_k − origin)``; in 2-D (``axis=None``) the
     in-plane rotation ``ξ_k = (−(y_k − y₀), x_k − x₀)``. Its charge is the angular momentum
-    about ``axis``.
+    about ``axis`` (times ``|axis|``).
     """
-    if axis is None:
-        d = 2
-    else:
+    if axis is not None:
         axis = jnp.asarray(axis, dtype=jnp.result_type(float))
         if axis.shape != (3,):
             raise ValueError(f"axis must be a 3-vector (or None for planar rotation); got shape {axis.shape}.")
-        d = 3
+    if origin is not None:
+        origin = jnp.asarray(origin, dtype=jnp.result_type(float))
+    return _Rotation(axis, origin, num_points)
 
-    def generator(q):
-        if q.shape[0] % d or (num_points is not None and q.shape[0] != num_points * d):
-            raise ValueError(
-                f"rotation_generator: q of length {q.shape[0]} is not a layout of "
-                f"{num_points or 'N'} points in {d} dimensions."
-            )
-        x = q.reshape(-1, d)
-        if origin is not None:
-            x = x - jnp.asarray(origin, q.dtype)
-        if d == 2:
-            return jnp.stack([-x[:, 1], x[:, 0]], axis=-1).reshape(-1)
-        return jnp.cross(jnp.broadcast_to(axis.astype(q.dtype), x.shape), x).reshape(-1)
 
-    return generator
+def _state(q, qd, t, args):
+    q = jnp.asarray(q)
+    if not jnp.issubdtype(q.dtype, jnp.floating):
+        q = q.astype(jnp.result_type(float))
+    return q, jnp.asarray(qd, q.dtype), _as_time(t, q), _as_array_leaves(args)
 
 
 def _generator(generator, q, t, args):
@@ -130,7 +153,11 @@ def noether_charge(system, generator: Callable, q, qd, t=0.0, args=None):
     layout (:func:`rotation_generator`) the angular momentum. Conserved when ``ξ`` is a symmetry
     (see :func:`noether_rate`).
     """
-    q, qd = jnp.asarray(q), jnp.asarray(qd)
+    return _noether_charge(system, generator, *_state(q, qd, t, args))
+
+
+@eqx.filter_jit
+def _noether_charge(system, generator, q, qd, t, args):
     _, xi = _generator(generator, q, t, args)
     return jnp.dot(_mechanics.momenta(system, q, qd, t, args), xi)
 
@@ -142,9 +169,12 @@ def noether_rate(system, generator: Callable, q, qd, t=0.0, args=None):
     Lagrangian under the transformation; the second term is the power of the constraint and
     non-conservative forces along ``ξ``.
     """
-    q, qd = jnp.asarray(q), jnp.asarray(qd)
+    return _noether_rate(system, generator, *_state(q, qd, t, args))
+
+
+@eqx.filter_jit
+def _noether_rate(system, generator, q, qd, t, args):
     fn, xi = _generator(generator, q, t, args)
-    t = _as_time(t, q)
     _, xi_dot = jax.jvp(lambda x, s: jnp.asarray(fn(x, t=s, args=args), q.dtype), (q, t),
                         (qd, jnp.ones_like(t)))
     _, delta_l = jax.jvp(lambda x, v: system.lagrangian(x, v, t=t, args=args), (q, qd), (xi, xi_dot))
@@ -230,6 +260,11 @@ def _summarize(values):
     return ConservedQuantity(values, initial, deviation, relative)
 
 
+@eqx.filter_jit
+def _charges(system, generator, q, qd, t, args):
+    return jax.vmap(lambda x, v, s: _noether_charge(system, generator, x, v, s, args))(q, qd, t)
+
+
 def conservation_report(
     trajectory,
     generators: Mapping[str, Callable] | None = None,
@@ -259,9 +294,7 @@ def conservation_report(
     for i in ignorable:
         report[f"p[{int(i)}]"] = _summarize(p[:, int(i)])
     for name, generator in (generators or {}).items():
-        values = jax.jit(jax.vmap(lambda x, v, s: noether_charge(system, generator, x, v, s, args)))(
-            trajectory.q, trajectory.qd, trajectory.t
-        )
+        values = _charges(system, generator, trajectory.q, trajectory.qd, trajectory.t, args)
         report[str(name)] = _summarize(values)
     return report
 

@@ -60,6 +60,16 @@ class Event(eqx.Module):
         self.direction = direction
 
 
+def multiplier_limit(index: int, limit: float, terminal: bool = True, below: bool = False) -> Event:
+    """An event for "the constraint force exceeds a limit": ``λ_index`` rises above ``limit``
+    (or, with ``below=True``, falls below it). E.g. the g-load on a roller-coaster car."""
+
+    def condition(q, qd, multipliers):
+        return multipliers[index] - limit
+
+    return Event(condition, terminal=terminal, direction=not below)
+
+
 class EventLog(eqx.Module):
     """What happened at the end of each segment (``max_segments`` entries).
 

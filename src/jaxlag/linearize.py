@@ -52,6 +52,7 @@ from . import constraints as _constraints
 from . import kkt as _kkt
 from . import mechanics as _mechanics
 from .checks import CONSTRAINT_RCOND, _is_concrete
+from .simulate import _as_array_leaves
 
 __all__ = ["Linearization", "NormalModes", "linearize", "normal_modes", "tangent_basis"]
 
@@ -216,6 +217,7 @@ def linearize(
     if not jnp.issubdtype(q.dtype, jnp.floating):
         q = q.astype(jnp.result_type(float))
     qd = jnp.zeros_like(q) if qd is None else jnp.asarray(qd, q.dtype)
+    args = _as_array_leaves(args)  # new parameter values must not recompile
     system.check(q, qd, t, args)
     t = jnp.asarray(t, q.dtype)
     lin, rank_deficient = _linearize(system, q, qd, t, args, inputs)
@@ -295,6 +297,7 @@ def normal_modes(system, q, t=0.0, args=None, *, tolerance: float = 1e-6) -> Nor
     if not jnp.issubdtype(q.dtype, jnp.floating):
         q = q.astype(jnp.result_type(float))
     qd = jnp.zeros_like(q)
+    args = _as_array_leaves(args)  # new parameter values must not recompile
     system.check(q, qd, t, args)
     if system.velocity_constraints is not None:
         raise ValueError(

@@ -156,6 +156,7 @@ def simulate(
     if not jnp.issubdtype(qd0.dtype, jnp.floating):
         qd0 = qd0.astype(q0.dtype)
     args = _as_array_leaves(args)
+    user_saveat = saveat is not None
     if ts is not None:
         ts = jnp.asarray(ts, dtype=q0.dtype)
         if ts.ndim != 1 or ts.shape[0] < 1:
@@ -193,10 +194,10 @@ def simulate(
         if not isinstance(e, Event):
             raise TypeError(f"events must be jl.Event instances; got {type(e).__name__}.")
     segmented = bool(events) or bool(system.unilateral)
-    if segmented and (ts is None or event is not None):
+    if segmented and (ts is None or event is not None or user_saveat):
         raise ValueError(
-            "Unilateral constraints and jl.Event need save times `ts` and no diffrax `event` "
-            "(use jl.Event for conditions)."
+            "Unilateral constraints and jl.Event need save times `ts`, and neither a diffrax "
+            "`event` (use jl.Event for conditions) nor a custom `saveat`."
         )
     check_in_jit = check_initial_state
     if check_initial_state and _is_concrete((q0, qd0, t0, args)):

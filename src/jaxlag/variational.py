@@ -306,16 +306,19 @@ def _velocity_stage(scheme, system, q1, p_tilde, t1, args, qd_guess, constants):
         if scheme.constant_mass:
             minv, b = constants
         else:
-            zero = jnp.zeros_like(q1)
-            mass = mass_matrix(system, q1, zero, t1, args)
-            b = _lagrangian_gradient(system, q1, zero, t1, args)[1]
+            # p = M q̇ + b for every q̇; evaluated at the guess, not at q̇ = 0, where a Lagrangian
+            # such as ½|q̇|² written with a norm has no derivative.
+            mass = mass_matrix(system, q1, qd_guess, t1, args)
+            b = _lagrangian_gradient(system, q1, qd_guess, t1, args)[1] - mass @ qd_guess
+        diagonal = bool(getattr(system, "diagonal_mass", False))
         if jac1 is None:
-            qd1 = minv @ (p_tilde - b) if scheme.constant_mass else solve_spd(mass, p_tilde - b)
+            qd1 = (minv @ (p_tilde - b) if scheme.constant_mass
+                   else solve_spd(mass, p_tilde - b, diagonal))
             return qd1, p_tilde, empty, jac1, no_iterations, success
         if scheme.constant_mass:
             qd1, nu = _project_with_inverse(minv, p_tilde - b, jac1, -f_t1)
         else:
-            qd1, nu = solve_kkt(mass, p_tilde - b, jac1, -f_t1)
+            qd1, nu = solve_kkt(mass, p_tilde - b, jac1, -f_t1, diagonal_mass=diagonal)
         return qd1, p_tilde + jac1.T @ nu, nu, jac1, no_iterations, success
     ctx = (system, q1, p_tilde, t1, jac1, f_t1, args)
     if jac1 is None:
@@ -468,8 +471,7 @@ def _integrate(scheme, system, q0, qd0, t0, dt, args, num_steps, save_every, thr
     p0 = jax.grad(lambda v: system.lagrangian(q0, v, t=t0, args=args))(qd0)
     if scheme.constant_mass:
         mass = mass_matrix(system, q0, qd0, t0, args)
-        b = _lagrangian_gradient(system, q0, jnp.zeros_like(qd0), t0, args)[1]
-        constants = (solve_spd(mass, jnp.eye(q0.shape[0], dtype=q0.dtype)), b)
+        constants = (solve_spd(mass, jnp.eye(q0.shape[0], dtype=q0.dtype)), p0 - mass @ qd0)
     else:
         constants = None
     # Start-up values from the continuous motion: q̈₀ and λ(t₀) of the KKT system.
@@ -495,12 +497,13 @@ def _integrate(scheme, system, q0, qd0, t0, dt, args, num_steps, save_every, thr
     last, (qs, qds, mus, lams_first) = jax.lax.scan(
         jax.checkpoint(block), carry, None, length=num_saves
     )
-    # The discrete multiplier at a saved state q_k is the DEL one, (μ_{k−1} + λ_k)/2. At t₀ the
-    # continuous λ(t₀) stands in for μ_{−1}; at the end one more position stage gives λ_N (its
-    # state is discarded, and so is its Newton status: it does not affect the trajectory).
+    # The discrete multiplier at a saved state q_k is the DEL one, (μ_{k−1} + λ_k)/2: λ_k and μ_{k−1}
+    # have opposite O(h) errors. At t₀, where μ_{−1} does not exist, the continuous λ(t₀) is
+    # reported; at the end one more position stage gives λ_N (its state is discarded, and so is
+    # its Newton status: it does not affect the trajectory).
     _, lam_end = _advance(scheme, system, args, constants, h, t0, last)
-    multipliers = 0.5 * (jnp.concatenate([lam0[None], mus])
-                         + jnp.concatenate([lams_first, lam_end[None]]))
+    later = 0.5 * (mus + jnp.concatenate([lams_first[1:], lam_end[None]]))
+    multipliers = jnp.concatenate([lam0[None], later])
     q = jnp.concatenate([q0[None], qs])
     qd = jnp.concatenate([qd0[None], qds])
     t = t0 + h * save_every * jnp.arange(num_saves + 1, dtype=q0.dtype)
@@ -579,7 +582,8 @@ def simulate_variational(
     Legendre transform projected onto ``J q̇ + ∂f/∂t = 0``; its derived quantities (energy,
     momenta, KKT multipliers) are computed from them as usual. ``traj.stats`` holds
     ``multipliers`` (the integrator's discrete multipliers ``(μ_{k−1} + λ_k)/2`` at the saved
-    states, ``(T, m_h)``, sign convention ``M q̈ = F + Jᵀλ``, second-order accurate),
+    states, ``(T, m_h)``, sign convention ``M q̈ = F + Jᵀλ``, second-order accurate; the KKT
+    value at ``t₀``),
     ``newton_iterations`` (total), ``max_newton_iterations`` (per step), ``num_steps`` and
     ``failed_step`` (−1 if none).
     """

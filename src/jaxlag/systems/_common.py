@@ -2,18 +2,22 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Callable
 
 
 def model(defaults: dict, *, allow_extra: bool = False) -> Callable:
-    """Decorate a model factory: record its default parameters as ``factory.defaults``."""
+    """Decorate a model factory: record its default parameters as ``factory.defaults`` and
+    memoize it, so that asking twice for the same model returns the same :class:`System` (whose
+    compiled simulations are then reused instead of recompiled)."""
 
     def wrap(factory):
-        factory.defaults = MappingProxyType(dict(defaults))
-        factory.allow_extra = allow_extra
-        return factory
+        cached = functools.lru_cache(maxsize=None)(factory)
+        cached.defaults = MappingProxyType(dict(defaults))
+        cached.allow_extra = allow_extra
+        return cached
 
     return wrap
 
