@@ -26,7 +26,6 @@ from __future__ import annotations
 from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
 
 import diffrax
-import jax
 import jax.numpy as jnp
 
 import jaxlag as jl

@@ -17,8 +17,8 @@ def double_pendulum(q, qd, args):
     m1, m2, l1, l2 = args
     t1, t2 = q
     w1, w2 = qd
-    x1, y1 = l1 * jnp.sin(t1), -l1 * jnp.cos(t1)
-    x2, y2 = x1 + l2 * jnp.sin(t2), y1 - l2 * jnp.cos(t2)
+    y1 = -l1 * jnp.cos(t1)
+    y2 = y1 - l2 * jnp.cos(t2)
     vx1, vy1 = l1 * jnp.cos(t1) * w1, l1 * jnp.sin(t1) * w1
     vx2, vy2 = vx1 + l2 * jnp.cos(t2) * w2, vy1 + l2 * jnp.sin(t2) * w2
     kinetic = 0.5 * m1 * (vx1**2 + vy1**2) + 0.5 * m2 * (vx2**2 + vy2**2)

@@ -3,7 +3,6 @@
 import math
 
 import diffrax
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -122,7 +121,6 @@ def rim_pendulum(q, qd, t, args):
     """Pendulum hung from a point moving on a rim of radius a rotating at ω in the vertical plane."""
     a, w, l, g = args["a"], args["w"], args["l"], args["g"]
     th, thd = q[0], qd[0]
-    x = a * jnp.cos(w * t) + l * jnp.sin(th)
     y = a * jnp.sin(w * t) - l * jnp.cos(th)
     xd = -a * w * jnp.sin(w * t) + l * jnp.cos(th) * thd
     yd = a * w * jnp.cos(w * t) + l * jnp.sin(th) * thd
