@@ -9,9 +9,9 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _plotting import plot_fit, report
 
 import jaxlag as jl
-from _plotting import plot_fit, report
 
 jax.config.update("jax_enable_x64", True)
 

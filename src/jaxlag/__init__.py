@@ -10,7 +10,7 @@ from .events import Event, EventLog, multiplier_limit
 from .fit import Bounded, Experiment, FitResult, Positive, fit, least_squares_loss
 from .kkt import solve_kkt
 from .simulate import EquationsOfMotion, simulate
-from .stabilization import Baumgarte, Projection, ProjectedSolver, consistent_initial_state
+from .stabilization import Baumgarte, ProjectedSolver, Projection, consistent_initial_state
 from .system import System
 from .trajectory import Trajectory
 
@@ -18,20 +18,20 @@ __all__ = [
     "Baumgarte",
     "Bounded",
     "EquationsOfMotion",
+    "Event",
+    "EventLog",
     "Experiment",
     "FitResult",
     "Positive",
-    "fit",
-    "least_squares_loss",
-    "multiplier_limit",
-    "Event",
-    "EventLog",
-    "Projection",
     "ProjectedSolver",
+    "Projection",
     "System",
     "Trajectory",
     "UserFunction",
     "consistent_initial_state",
+    "fit",
+    "least_squares_loss",
+    "multiplier_limit",
     "simulate",
     "solve_kkt",
 ]

@@ -18,7 +18,8 @@ The signature is read once, when the function is wrapped, with :func:`inspect.si
 from __future__ import annotations
 
 import inspect
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 

@@ -22,7 +22,8 @@ once and works under ``vmap`` (each batch member switching at its own times) and
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import diffrax
 import equinox as eqx

@@ -28,7 +28,8 @@ each starting from its own free state, and adds continuity residuals
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import diffrax
 import equinox as eqx
