@@ -5,6 +5,7 @@ compiled, differentiable diffrax simulation. Sign convention everywhere:
 ``d/dt ∂L/∂q̇ − ∂L/∂q = Jᵀλ + Aᵀμ − ∂R/∂q̇ + Q``, i.e. ``M q̈ = F + Jᵀλ + Aᵀμ``.
 """
 
+from . import analysis, coordinates, systems
 from .conventions import UserFunction
 from .events import Event, EventLog, multiplier_limit
 from .fit import Bounded, Experiment, FitResult, Positive, fit, least_squares_loss
@@ -13,8 +14,12 @@ from .simulate import EquationsOfMotion, simulate
 from .stabilization import Baumgarte, ProjectedSolver, Projection, consistent_initial_state
 from .system import System
 from .trajectory import Trajectory
+from .variational import simulate_variational
 
 __all__ = [
+    "analysis",
+    "coordinates",
+    "systems",
     "Baumgarte",
     "Bounded",
     "EquationsOfMotion",
@@ -33,6 +38,7 @@ __all__ = [
     "least_squares_loss",
     "multiplier_limit",
     "simulate",
+    "simulate_variational",
     "solve_kkt",
 ]
 

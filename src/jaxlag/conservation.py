@@ -121,7 +121,9 @@ def rotation_generator(axis=None, num_points: int | None = None, origin=None) ->
     if axis is not None:
         axis = jnp.asarray(axis, dtype=jnp.result_type(float))
         if axis.shape != (3,):
-            raise ValueError(f"axis must be a 3-vector (or None for planar rotation); got shape {axis.shape}.")
+            raise ValueError(
+                f"axis must be a 3-vector (or None for planar rotation); got shape {axis.shape}."
+            )
     if origin is not None:
         origin = jnp.asarray(origin, dtype=jnp.result_type(float))
     return _Rotation(axis, origin, num_points)

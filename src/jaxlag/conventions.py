@@ -22,6 +22,9 @@ from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
 
 _EXTRA_NAMES = ("t", "args")
 
@@ -118,3 +121,21 @@ def wrap_event_function(fn: Callable, role: str = "event condition") -> UserFunc
     if not callable(fn):
         raise TypeError(f"The {role} must be callable, got {type(fn).__name__}.")
     return UserFunction(fn, _parse_signature(fn, 2, role, _EXTRA_NAMES + ("multipliers",)), role)
+
+
+def as_array_leaves(tree):
+    """Python floats and NumPy arrays become (strongly typed) JAX arrays.
+
+    Used on ``args`` before compiled entry points, so that calling again with new parameter
+    values reuses the compiled program (a Python float would be a static, hashed value), and so
+    that ``1.0`` and ``np.float64(1.0)`` share one trace. Python ints and bools stay static: they
+    may drive Python control flow in user functions.
+    """
+
+    def convert(x):
+        if isinstance(x, (float, complex, np.ndarray, np.floating)):
+            x = jnp.asarray(x)
+            return jnp.asarray(x, dtype=x.dtype)
+        return x
+
+    return jax.tree.map(convert, tree)

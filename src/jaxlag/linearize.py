@@ -30,6 +30,12 @@ equilibria) ``s = 0``. For a conservative system the ``d`` eigenvalues come in p
 ``tol`` is ``tolerance`` (default ``1e-6``) times the norm of ``A_T`` (the zero eigenvalues of
 a Jordan block are computed only to about ``√ε`` relative accuracy).
 
+**Time dependence.** For a time-dependent system (explicit ``t`` in ``L``, rheonomic constraints)
+the matrices are those of the variational equation frozen at ``t``. Their eigenvalues decide
+stability when they are the same at every time along the motion: choose coordinates in which the
+steady motion is a uniform drift of cyclic coordinates (the spinning-wire bead in ``(r, φ, z)``
+with ``φ = ωt``, not in inertial Cartesian coordinates, where the tangent space itself rotates).
+
 **Normal modes** (:func:`normal_modes`, equilibria at rest): with ``E_q`` a basis of
 ``null(J)`` the small oscillations solve ``K_T v = ω² M_T v`` with ``M_T = E_qᵀ M E_q`` and
 ``K_T = −E_qᵀ M (∂q̈/∂q) E_q``, which includes the constraint curvature ``Σ λ_i ∂²f_i/∂q²``
@@ -181,7 +187,9 @@ def _input_derivative(field, args, inputs):
     u0 = jnp.asarray(inputs(args))
     shape = u0.shape
     if u0.ndim > 1:
-        raise ValueError(f"The input selected by `inputs` must be a scalar or a 1-D array; got shape {shape}.")
+        raise ValueError(
+            f"The input selected by `inputs` must be a scalar or a 1-D array; got shape {shape}."
+        )
     if not jnp.issubdtype(u0.dtype, jnp.floating):
         u0 = u0.astype(jnp.result_type(float))
     flat = jnp.atleast_1d(u0)

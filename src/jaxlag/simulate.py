@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .checks import _is_concrete, validate_initial_state
+from .conventions import as_array_leaves as _as_array_leaves
 from .events import Event, default_root_finder, solve_segments
 from .kkt import accelerations_and_multipliers
 from .mechanics import unconstrained_accelerations
@@ -40,18 +41,6 @@ class EquationsOfMotion(eqx.Module):
         else:
             qdd = unconstrained_accelerations(self.system, q, qd, t, args)
         return qd, qdd
-
-
-def _as_array_leaves(tree):
-    """Python floats and NumPy arrays become JAX arrays so new values do not recompile."""
-
-    def convert(x):
-        if isinstance(x, (float, complex, np.ndarray, np.floating)):
-            x = jnp.asarray(x)
-            return jnp.asarray(x, dtype=x.dtype)  # a strong dtype: 1.0 and np.float64(1.0) share a trace
-        return x
-
-    return jax.tree.map(convert, tree)
 
 
 @eqx.filter_jit

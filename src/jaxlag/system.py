@@ -11,7 +11,12 @@ import jax.numpy as jnp
 from . import constraints as _constraints
 from . import kkt as _kkt
 from . import mechanics as _mechanics
-from .conventions import UserFunction, wrap_configuration_function, wrap_state_function
+from .conventions import (
+    UserFunction,
+    as_array_leaves,
+    wrap_configuration_function,
+    wrap_state_function,
+)
 
 
 class System(eqx.Module):
@@ -150,64 +155,81 @@ class System(eqx.Module):
                 )
 
     # ----------------------------------------------------------------- mechanics at a state
+    def _at_state(self, quantity, q, qd, t, args):
+        q, qd = jnp.asarray(q), jnp.asarray(qd)
+        self.check(q, qd, t, args)
+        t = jnp.asarray(t, dtype=jnp.result_type(q.dtype, jnp.float32))
+        return _evaluate_at_state(quantity, self, q, qd, t, as_array_leaves(args))
+
     def lagrangian_value(self, q, qd, t=0.0, args=None):
         """``L(q, q̇, t)``."""
-        self.check(q, qd, t, args)
-        return _mechanics.lagrangian_value(self, q, qd, t, args)
+        return self._at_state(_mechanics.lagrangian_value, q, qd, t, args)
 
     def mass_matrix(self, q, qd, t=0.0, args=None):
         """``M = ∂²L/∂q̇²``, shape (n, n)."""
-        self.check(q, qd, t, args)
-        return _mechanics.mass_matrix(self, q, qd, t, args)
+        return self._at_state(_mechanics.mass_matrix, q, qd, t, args)
 
     def generalized_forces(self, q, qd, t=0.0, args=None):
         """``F = ∂L/∂q − (∂²L/∂q̇∂q) q̇ − ∂²L/∂q̇∂t − ∂R/∂q̇ + Q``, shape (n,)."""
-        self.check(q, qd, t, args)
-        return _mechanics.generalized_forces(self, q, qd, t, args)
+        return self._at_state(_mechanics.generalized_forces, q, qd, t, args)
 
     def momenta(self, q, qd, t=0.0, args=None):
         """``p = ∂L/∂q̇``."""
-        self.check(q, qd, t, args)
-        return _mechanics.momenta(self, q, qd, t, args)
+        return self._at_state(_mechanics.momenta, q, qd, t, args)
 
     def energy(self, q, qd, t=0.0, args=None):
         """Energy function ``h = q̇·∂L/∂q̇ − L``."""
-        self.check(q, qd, t, args)
-        return _mechanics.energy(self, q, qd, t, args)
+        return self._at_state(_mechanics.energy, q, qd, t, args)
 
     def accelerations(self, q, qd, t=0.0, args=None):
         """``q̈`` from the (constrained) equations of motion."""
-        self.check(q, qd, t, args)
-        return _kkt.accelerations_and_multipliers(self, q, qd, t, args)[0]
+        return self._at_state(_accelerations, q, qd, t, args)
 
     def multipliers(self, q, qd, t=0.0, args=None):
         """Holonomic multipliers ``λ`` (m_h,) in ``M q̈ = F + Jᵀλ + Aᵀμ``."""
-        self.check(q, qd, t, args)
-        return _kkt.accelerations_and_multipliers(self, q, qd, t, args)[1]
+        return self._at_state(_multipliers, q, qd, t, args)
 
     def velocity_multipliers(self, q, qd, t=0.0, args=None):
         """Velocity-constraint multipliers ``μ`` (m_v,) in ``M q̈ = F + Jᵀλ + Aᵀμ``."""
-        self.check(q, qd, t, args)
-        return _kkt.accelerations_and_multipliers(self, q, qd, t, args)[2]
+        return self._at_state(_velocity_multipliers, q, qd, t, args)
 
     def constraint_forces(self, q, qd, t=0.0, args=None):
         """Generalized constraint forces ``Qᶜ = Jᵀλ + Aᵀμ``, shape (n,)."""
-        self.check(q, qd, t, args)
-        _, lam, mu = _kkt.accelerations_and_multipliers(self, q, qd, t, args)
-        rows, _ = _constraints.constraint_rows(self, q, qd, t, args)
-        return rows.T @ jnp.concatenate([lam, mu])
+        return self._at_state(_constraint_forces, q, qd, t, args)
 
     def constraint_residuals(self, q, qd, t=0.0, args=None):
         """``(f, ḟ, g)``: holonomic position and velocity residuals, velocity-constraint residual."""
-        self.check(q, qd, t, args)
-        return _constraints.constraint_residuals(self, q, qd, t, args)
+        return self._at_state(_constraints.constraint_residuals, q, qd, t, args)
 
     def dissipated_power(self, q, qd, t=0.0, args=None):
         """``q̇·∂R/∂q̇``: power removed by dissipation."""
-        self.check(q, qd, t, args)
-        return _mechanics.dissipated_power(self, q, qd, t, args)
+        return self._at_state(_mechanics.dissipated_power, q, qd, t, args)
 
     def input_power(self, q, qd, t=0.0, args=None):
         """``q̇·Q``: power delivered by external forces."""
-        self.check(q, qd, t, args)
-        return _mechanics.input_power(self, q, qd, t, args)
+        return self._at_state(_mechanics.input_power, q, qd, t, args)
+
+
+# Compiled once per (quantity, system, shapes): eager calls of the methods above are fast, and
+# inside a user's jit the call is simply inlined.
+@eqx.filter_jit
+def _evaluate_at_state(quantity, system, q, qd, t, args):
+    return quantity(system, q, qd, t, args)
+
+
+def _accelerations(system, q, qd, t, args):
+    return _kkt.accelerations_and_multipliers(system, q, qd, t, args)[0]
+
+
+def _multipliers(system, q, qd, t, args):
+    return _kkt.accelerations_and_multipliers(system, q, qd, t, args)[1]
+
+
+def _velocity_multipliers(system, q, qd, t, args):
+    return _kkt.accelerations_and_multipliers(system, q, qd, t, args)[2]
+
+
+def _constraint_forces(system, q, qd, t, args):
+    _, lam, mu = _kkt.accelerations_and_multipliers(system, q, qd, t, args)
+    rows, _ = _constraints.constraint_rows(system, q, qd, t, args)
+    return rows.T @ jnp.concatenate([lam, mu])

@@ -26,13 +26,18 @@ Discrete Lagrangians (both second order, symmetric):
   ``v = (q_{k+1} − q_k)/h``. For ``L = ½ q̇ᵀMq̇ − V(q)`` with constant ``M`` this is exactly
   RATTLE (Störmer–Verlet with constraints): the positions are explicit given ``λ_k``, so each
   step solves only the ``m`` constraint equations for ``λ_k`` by Newton (SHAKE) and the velocity
-  stage is one linear solve. For ``M(q)`` the position stage is a Newton solve in ``(q_{k+1}, λ_k)``.
+  stage is one linear solve. For ``M(q)`` the position stage is a Newton solve in
+  ``(q_{k+1}, λ_k)``.
   Needs ``L`` quadratic in ``q̇``.
 * ``method="variational"``: midpoint ``L_d = h L((q_k + q_{k+1})/2, v, t_k + h/2)``, for any
   regular ``L(q, q̇, t)``; position stage by Newton in ``(q_{k+1}, λ_k)``, velocity stage by Newton
   in ``(q̇_{k+1}, μ_k)`` unless ``L`` is quadratic in ``q̇`` (then linear).
 * ``method="auto"`` (default): ``"rattle"`` when ``L`` is recognisably quadratic in ``q̇``, else
   ``"variational"``.
+
+Higher order: ``order=4`` or ``6`` composes the symmetric step with Yoshida's coefficients (3 or
+7 substeps per step, some of negative size); the composition is still symplectic, symmetric and
+constraint-preserving, with energy error ``O(h⁴)`` or ``O(h⁶)``.
 
 Non-conservative forces enter through the discrete Lagrange–d'Alembert principle,
 ``f^± = (h/2) Qⁿᶜ`` at the quadrature node(s) of the rule, ``Qⁿᶜ = −∂R/∂q̇ + Q_ext``.
@@ -62,7 +67,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jax.extend.core import Literal
+
+try:  # the public home of jaxpr literals; older JAX kept them in jax.core
+    from jax.extend.core import Literal
+except ImportError:  # pragma: no cover
+    from jax.core import Literal
 
 from . import constraints as _constraints
 from .checks import _is_concrete, validate_initial_state
@@ -139,10 +148,11 @@ def lagrangian_structure(system: System, q, qd, t=0.0, args=None) -> LagrangianS
         return LagrangianStructure(False, False)
 
 
-def _check_quadratic(system, q, qd, t, args, tolerance=1e-8):
-    """Numerical check at one state that ``L(q, q̇) = L(q, 0) + bᵀq̇ + ½ q̇ᵀMq̇`` along two rays.
+def _check_quadratic(system, q, qd, t, args):
+    """Numerical check at one state that ``L`` is quadratic in ``q̇``.
 
-    Returns the largest relative deviation of the third finite difference in ``q̇``.
+    Returns the third finite difference of ``s ↦ L(q, s u)`` along a generic direction ``u``
+    (zero for a quadratic), relative to the size of ``L``.
     """
     scale = 1.0 + jnp.max(jnp.abs(qd))
     direction = qd + scale * jnp.cos(jnp.arange(qd.shape[0], dtype=q.dtype) + 0.5)
@@ -163,11 +173,16 @@ def _has_forces(system):
     return system.dissipation is not None or system.forces is not None
 
 
-def _discrete_derivatives(system, rule, q0, q1, t0, h, args):
-    """``(D₁L_d + f⁻, D₂L_d + f⁺)`` for the midpoint or trapezoidal rule."""
-    v = (q1 - q0) / h
+def _discrete_derivatives(system, rule, q0, dq, t0, h, args):
+    """``(D₁L_d + f⁻, D₂L_d + f⁺)`` at ``(q_k, q_k + Δq)`` for the midpoint or trapezoidal rule.
+
+    The increment ``Δq`` is the unknown rather than ``q_{k+1}``: ``v = Δq/h`` then carries no
+    cancellation error (``(q_{k+1} − q_k)/h`` would lose ``eps·|q|/h`` at every step).
+    """
+    v = dq / h
+    q1 = q0 + dq
     if rule == "midpoint":
-        qm, tm = 0.5 * (q0 + q1), t0 + 0.5 * h
+        qm, tm = q0 + 0.5 * dq, t0 + 0.5 * h
         lq, lv = _lagrangian_gradient(system, qm, v, tm, args)
         d1, d2 = 0.5 * h * lq - lv, 0.5 * h * lq + lv
         if _has_forces(system):
@@ -206,7 +221,8 @@ def _project_with_inverse(minv, rhs, jac, c):
 
 # --------------------------------------------------------------------------- configuration
 #: Symmetric compositions of the second-order step (Yoshida 1990): substep sizes γᵢ h.
-_TRIPLE_JUMP = (1.0 / (2.0 - 2.0 ** (1.0 / 3.0)), -(2.0 ** (1.0 / 3.0)) / (2.0 - 2.0 ** (1.0 / 3.0)))
+_CBRT2 = 2.0 ** (1.0 / 3.0)
+_TRIPLE_JUMP = (1.0 / (2.0 - _CBRT2), -_CBRT2 / (2.0 - _CBRT2))
 _YOSHIDA6 = (0.784513610477560, 0.235573213359357, -1.17767998417887)
 COMPOSITIONS = {
     2: (1.0,),
@@ -247,6 +263,7 @@ class _Step(NamedTuple):
     lam: Any  # position-stage multiplier λ_k
     mu: Any  # velocity-stage multiplier μ_k
     local: Any  # (J, ∂L/∂q) at the new state, reused by the next step
+    secant: Any  # Δq/h
     iterations: Any
     result: Any
 
@@ -265,18 +282,18 @@ def _root(fn, y0, ctx, scheme):
 
 def _position_residual_full(y, ctx):
     system, rule, q0, p0, t0, h, jac0, args = ctx
-    q1, impulse = y if jac0 is not None else (y, None)
-    d1, _ = _discrete_derivatives(system, rule, q0, q1, t0, h, args)
+    dq, impulse = y if jac0 is not None else (y, None)
+    d1, _ = _discrete_derivatives(system, rule, q0, dq, t0, h, args)
     # h · (p_k + D₁L_d + f⁻ + (h/2)Jᵀλ): in units of M·q, balanced against f's rows.
     r1 = h * (p0 + d1)
     if jac0 is None:
         return r1
-    return r1 + jac0.T @ impulse, _constraints.holonomic_residual(system, q1, t0 + h, args)
+    return r1 + jac0.T @ impulse, _constraints.holonomic_residual(system, q0 + dq, t0 + h, args)
 
 
 def _position_residual_explicit(impulse, ctx):
-    system, q_free, gain, t1, args = ctx
-    return _constraints.holonomic_residual(system, q_free + gain @ impulse, t1, args)
+    system, q0, dq_free, gain, t1, args = ctx
+    return _constraints.holonomic_residual(system, q0 + (dq_free + gain @ impulse), t1, args)
 
 
 def _velocity_residual(y, ctx):
@@ -339,42 +356,46 @@ def _local_terms(scheme, system, q, qd, t, args):
 def _step(scheme, system, args, constants, h, t0, q0, p0, local0, guess, qd_guess):
     """One step ``(q_k, p_k) ↦ (q_{k+1}, p_{k+1})`` of size ``h`` (may be negative).
 
-    ``guess = (q_{k+1}, Λ_k)`` is the Newton starting point, ``local0 = (J_k, ∂L/∂q|_k)``.
+    ``guess = (Δq, Λ_k)`` is the Newton starting point, ``local0 = (J_k, ∂L/∂q|_k)``.
     """
     t1 = t0 + h
     jac0, lq0 = local0
     lq1 = None
     if scheme.explicit_positions:
-        # RATTLE/SHAKE: p_{k+½} = p_k + (h/2)(∂L/∂q|_k + J_kᵀλ_k), q_{k+1} = q_k + h M⁻¹(p_{k+½} − b).
+        # RATTLE/SHAKE: p_{k+½} = p_k + (h/2)(∂L/∂q|_k + J_kᵀλ_k),
+        # q_{k+1} = q_k + h M⁻¹(p_{k+½} − b).
         minv, b = constants
         p_half = p0 + 0.5 * h * lq0
-        q_free = q0 + h * (minv @ (p_half - b))
+        dq = h * (minv @ (p_half - b))
         if jac0 is not None:
             gain = minv @ jac0.T
             impulse, iterations, result = _root(
-                _position_residual_explicit, guess[1], (system, q_free, gain, t1, args), scheme
+                _position_residual_explicit, guess[1], (system, q0, dq, gain, t1, args), scheme
             )
-            q1 = q_free + gain @ impulse
+            dq = dq + gain @ impulse
             p_half = p_half + jac0.T @ impulse / h
         else:
-            impulse, iterations, result = guess[1], jnp.zeros((), jnp.int32), optx.RESULTS.successful
-            q1 = q_free
+            impulse, result = guess[1], optx.RESULTS.successful
+            iterations = jnp.zeros((), jnp.int32)
+        q1 = q0 + dq
         lq1 = _lagrangian_gradient(system, q1, qd_guess, t1, args)[0]  # independent of q̇ here
         p_tilde = p_half + 0.5 * h * lq1
     else:
         ctx = (system, scheme.rule, q0, p0, t0, h, jac0, args)
         if jac0 is None:
-            q1, iterations, result = _root(_position_residual_full, guess[0], ctx, scheme)
+            dq, iterations, result = _root(_position_residual_full, guess[0], ctx, scheme)
             impulse = guess[1]
         else:
-            (q1, impulse), iterations, result = _root(_position_residual_full, guess, ctx, scheme)
-        _, p_tilde = _discrete_derivatives(system, scheme.rule, q0, q1, t0, h, args)
+            (dq, impulse), iterations, result = _root(_position_residual_full, guess, ctx, scheme)
+        q1 = q0 + dq
+        _, p_tilde = _discrete_derivatives(system, scheme.rule, q0, dq, t0, h, args)
     qd1, p1, nu, jac1, v_iterations, v_result = _velocity_stage(
         scheme, system, q1, p_tilde, t1, args, qd_guess, constants
     )
     result = optx.RESULTS.where(result == optx.RESULTS.successful, v_result, result)
     lam = 2.0 * impulse / (h * h)
-    return _Step(q1, p1, qd1, lam, 2.0 * nu / h, (jac1, lq1), iterations + v_iterations, result)
+    return _Step(q1, p1, qd1, lam, 2.0 * nu / h, (jac1, lq1), dq / h,
+                 iterations + v_iterations, result)
 
 
 # --------------------------------------------------------------------------- the integration
@@ -401,9 +422,9 @@ def _substep(scheme, system, args, constants, h, t, carry: _Carry):
     # velocity at t, so their difference gives the acceleration. λ by linear extrapolation
     # (uniform steps) or held (compositions, where the substep sizes jump).
     accel = (carry.qd - v_prev) / (0.5 * h_prev)
-    guess_q = carry.q + h * (carry.qd + 0.5 * h * accel)
+    guess_dq = h * (carry.qd + 0.5 * h * accel)
     lam_guess = 2.0 * lam1 - lam2 if scheme.order == 2 else lam1
-    guess = (guess_q, 0.5 * h * h * lam_guess)
+    guess = (guess_dq, 0.5 * h * h * lam_guess)
     out = _step(scheme, system, args, constants, h, t, carry.q, carry.p, carry.local, guess,
                 carry.qd)
     ok = out.result == optx.RESULTS.successful
@@ -413,7 +434,7 @@ def _substep(scheme, system, args, constants, h, t, carry: _Carry):
         p=out.p,
         qd=out.qd,
         local=out.local,
-        secant=((out.q - carry.q) / h, h),
+        secant=(out.secant, h),
         lams=(out.lam, lam1),
         mu=out.mu,
         iterations=carry.iterations + out.iterations,
@@ -497,8 +518,8 @@ def _integrate(scheme, system, q0, qd0, t0, dt, args, num_steps, save_every, thr
     last, (qs, qds, mus, lams_first) = jax.lax.scan(
         jax.checkpoint(block), carry, None, length=num_saves
     )
-    # The discrete multiplier at a saved state q_k is the DEL one, (μ_{k−1} + λ_k)/2: λ_k and μ_{k−1}
-    # have opposite O(h) errors. At t₀, where μ_{−1} does not exist, the continuous λ(t₀) is
+    # The discrete multiplier at a saved state q_k is the DEL one, (μ_{k−1} + λ_k)/2: λ_k and
+    # μ_{k−1} have opposite O(h) errors. At t₀, where μ_{−1} does not exist, the continuous λ(t₀) is
     # reported; at the end one more position stage gives λ_N (its state is discarded, and so is
     # its Newton status: it does not affect the trajectory).
     _, lam_end = _advance(scheme, system, args, constants, h, t0, last)
