@@ -6,6 +6,7 @@ compiled, differentiable diffrax simulation. Sign convention everywhere:
 """
 
 from . import analysis, coordinates, systems
+from .batch import batch_sharding, simulate_batch
 from .conventions import UserFunction
 from .events import Event, EventLog, multiplier_limit
 from .fit import Bounded, Experiment, FitResult, Positive, fit, least_squares_loss
@@ -18,6 +19,8 @@ from .variational import simulate_variational
 
 __all__ = [
     "analysis",
+    "batch_sharding",
+    "simulate_batch",
     "coordinates",
     "systems",
     "Baumgarte",

@@ -15,11 +15,18 @@ it. Group members of similar stiffness, or use a constant step.
 Sharding uses JAX's own machinery. With ``sharding="auto"`` the batch axis is split over every
 device of ``jax.devices()`` (a 1-D :class:`jax.sharding.Mesh` named ``"batch"``): batched inputs
 are placed with ``jax.device_put(x, NamedSharding(mesh, P("batch")))``, shared inputs are
-replicated, and XLA partitions the vmapped program so that each device integrates its slice.
-The batch is padded to a multiple of the number of shards (with copies of the last member) and
-the padding is dropped from the result. On several hosts, call ``jax.distributed.initialize()``
-first in every process; ``jax.devices()`` is then the global device list and the same call
-shards over all of them.
+replicated, and XLA's SPMD partitioner splits the jitted, vmapped program so that each device
+integrates its own slice; the outputs stay sharded along the batch axis. The devices exchange
+a few scalars per solver step (whether any member is still running), not the states. The batch is
+padded to a multiple of the number of shards with copies of the last member; when padding was
+needed the padded rows are dropped on return, which gathers the result (an unevenly split axis
+cannot stay sharded), so choose ``B`` a multiple of the device count for large batches.
+
+On several hosts, call ``jax.distributed.initialize()`` first in every process; ``jax.devices()``
+is then the global device list, ``"auto"`` builds a mesh over all of them, and the same call
+(with the same global batch in every process, or global ``jax.Array`` s built with
+``jax.make_array_from_process_local_data(batch_sharding(), local_rows)``) shards over every
+device of every host.
 """
 
 from __future__ import annotations
@@ -33,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from .conventions import as_array_leaves
 from .simulate import simulate
 from .system import System
 from .trajectory import Trajectory
@@ -40,21 +48,6 @@ from .trajectory import Trajectory
 __all__ = ["simulate_batch", "batch_sharding"]
 
 _BATCH_AXIS = "batch"
-
-
-def _as_array_leaves(tree):
-    """Python floats and NumPy arrays become JAX arrays, so new values do not recompile.
-
-    Python ints and bools stay as they are: static, usable for control flow (as in ``simulate``).
-    """
-
-    def convert(x):
-        if isinstance(x, (float, complex, np.ndarray, np.floating)):
-            x = jnp.asarray(x)
-            return jnp.asarray(x, dtype=x.dtype)
-        return x
-
-    return jax.tree.map(convert, tree)
 
 
 def _batched_mask(args, args_axes):
@@ -154,7 +147,9 @@ def _run_batch(system, q0, qd0, ts, batched_args, shared_args, q_axis, qd_axis, 
     if out_sharding is not None:
         # The inputs arrive sharded along the batch axis; XLA's SPMD partitioner propagates that
         # through the vmapped program, so each device integrates its slice. (The batched solver
-        # loop still agrees across devices on when to stop: one small all-reduce per step.)
+        # loop still agrees across devices on when to stop: a scalar all-reduce per step. A
+        # shard_map with one loop per device would avoid it, but lineax's structure check fails
+        # under shard_map for the event root finder, so events would not work.)
         out = _constrain(out, out_sharding)
     return out
 
@@ -212,7 +207,7 @@ def simulate_batch(
                 f"{name} must have shape (B, n) (one row per batch member) or (n,) (shared); "
                 f"got {x.shape}."
             )
-    args = _as_array_leaves(args)
+    args = as_array_leaves(args)
     mask = _batched_mask(args, args_axes)
     batched_args, shared_args = eqx.partition(args, mask)
 
