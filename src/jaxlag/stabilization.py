@@ -75,7 +75,7 @@ def project_state(system, q, qd, t, args, newton_steps: int = 2, active=None,
     if system.holonomic is not None:
         for _ in range(newton_steps):
             f = _constraints.holonomic_residual(system, q, t, args)
-            jac = jax.jacfwd(lambda x: _constraints.holonomic_residual(system, x, t, args))(q)
+            jac = _constraints.holonomic_jacobian(system, q, t, args, f.shape[0])
             q = q - _schur_correction(system, solve_mass, jac, f, active)
         if refresh_mass:
             solve_mass = spd_solver(mass_matrix(system, q, qd, t, args), system.diagonal_mass)
@@ -84,10 +84,10 @@ def project_state(system, q, qd, t, args, newton_steps: int = 2, active=None,
         def f_of(x, s):
             return _constraints.holonomic_residual(system, x, s, args)
 
-        jac = jax.jacfwd(f_of)(q, t)
-        f_t = jax.jacfwd(f_of, argnums=1)(q, t)
-        rows.append(jac)
-        residual.append(jac @ qd + f_t)
+        # ḟ = J q̇ + ∂f/∂t in one forward pass; J itself for the projection rows.
+        _, f_dot = jax.jvp(f_of, (q, t), (qd, jnp.ones_like(t)))
+        rows.append(_constraints.holonomic_jacobian(system, q, t, args, f_dot.shape[0]))
+        residual.append(f_dot)
     if system.velocity_constraints is not None:
         g, a, _ = _constraints.velocity_terms(system, q, qd, t, args)
         rows.append(a)
