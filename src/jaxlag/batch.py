@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from .conventions import as_array_leaves
+from .conventions import as_array_leaves, as_float_state
 from .simulate import simulate
 from .system import System
 from .trajectory import Trajectory
@@ -195,12 +195,7 @@ def simulate_batch(
     are compiled in (``eqx.error_if``): a bad member stops the call; call ``jl.simulate`` on
     that member alone for the detailed message.
     """
-    q0 = jnp.asarray(q0)
-    if not jnp.issubdtype(q0.dtype, jnp.floating):
-        q0 = q0.astype(jnp.result_type(float))
-    qd0 = jnp.asarray(qd0)
-    if not jnp.issubdtype(qd0.dtype, jnp.floating):
-        qd0 = qd0.astype(q0.dtype)
+    q0, qd0 = as_float_state(q0, qd0)
     for name, x in (("q0", q0), ("qd0", qd0)):
         if x.ndim not in (1, 2):
             raise ValueError(

@@ -92,35 +92,40 @@ class UserFunction(eqx.Module):
         return self.fn(*state, **{name: available[name] for name in self.keywords})
 
 
-def wrap_state_function(fn: Callable | None, role: str) -> UserFunction | None:
-    """Wrap ``fn(q, qd, [t], [args])`` (Lagrangian, dissipation, forces)."""
+def _wrap(fn, role, n_state, extra_names=_EXTRA_NAMES):
     if fn is None:
         return None
     if isinstance(fn, UserFunction):
         return fn
     if not callable(fn):
         raise TypeError(f"The {role} must be callable, got {type(fn).__name__}.")
-    return UserFunction(fn, _parse_signature(fn, 2, role), role)
+    return UserFunction(fn, _parse_signature(fn, n_state, role, extra_names), role)
+
+
+def wrap_state_function(fn: Callable | None, role: str) -> UserFunction | None:
+    """Wrap ``fn(q, qd, [t], [args])`` (Lagrangian, dissipation, forces, velocity constraints)."""
+    return _wrap(fn, role, 2)
 
 
 def wrap_configuration_function(fn: Callable | None, role: str) -> UserFunction | None:
-    """Wrap ``fn(q, [t], [args])`` (holonomic constraints, Pfaffian ``A`` and ``b``)."""
-    if fn is None:
-        return None
-    if isinstance(fn, UserFunction):
-        return fn
-    if not callable(fn):
-        raise TypeError(f"The {role} must be callable, got {type(fn).__name__}.")
-    return UserFunction(fn, _parse_signature(fn, 1, role), role)
+    """Wrap ``fn(q, [t], [args])`` (holonomic constraints)."""
+    return _wrap(fn, role, 1)
 
 
 def wrap_event_function(fn: Callable, role: str = "event condition") -> UserFunction:
     """Wrap ``c(q, qd, [t], [args], [multipliers])`` (event conditions)."""
-    if isinstance(fn, UserFunction):
-        return fn
-    if not callable(fn):
-        raise TypeError(f"The {role} must be callable, got {type(fn).__name__}.")
-    return UserFunction(fn, _parse_signature(fn, 2, role, _EXTRA_NAMES + ("multipliers",)), role)
+    return _wrap(fn, role, 2, _EXTRA_NAMES + ("multipliers",))
+
+
+def as_float_state(q0, qd0):
+    """Initial coordinates and velocities as floating-point JAX arrays (ints are promoted)."""
+    q0 = jnp.asarray(q0)
+    if not jnp.issubdtype(q0.dtype, jnp.floating):
+        q0 = q0.astype(jnp.result_type(float))
+    qd0 = jnp.asarray(qd0)
+    if not jnp.issubdtype(qd0.dtype, jnp.floating):
+        qd0 = qd0.astype(q0.dtype)
+    return q0, qd0
 
 
 def as_array_leaves(tree):

@@ -12,6 +12,7 @@ import numpy as np
 
 from .checks import _is_concrete, validate_initial_state
 from .conventions import as_array_leaves as _as_array_leaves
+from .conventions import as_float_state
 from .events import Event, default_root_finder, solve_segments
 from .kkt import accelerations_and_multipliers
 from .mechanics import unconstrained_accelerations
@@ -138,12 +139,7 @@ def simulate(
 
     Returns a :class:`~jaxlag.Trajectory`.
     """
-    q0 = jnp.asarray(q0)
-    if not jnp.issubdtype(q0.dtype, jnp.floating):
-        q0 = q0.astype(jnp.result_type(float))
-    qd0 = jnp.asarray(qd0)
-    if not jnp.issubdtype(qd0.dtype, jnp.floating):
-        qd0 = qd0.astype(q0.dtype)
+    q0, qd0 = as_float_state(q0, qd0)
     args = _as_array_leaves(args)
     user_saveat = saveat is not None
     if ts is not None:
