@@ -35,6 +35,7 @@ from . import constraints as _constraints
 from . import kkt as _kkt
 from . import mechanics as _mechanics
 from .checks import _is_concrete
+from .conventions import as_float_state
 from .simulate import _as_array_leaves
 
 __all__ = ["Equilibrium", "equilibrium"]
@@ -238,10 +239,8 @@ def equilibrium(
     mass). The equations are square only if the equilibrium is isolated; families of equilibria
     (a free particle, a nonholonomic system at rest) need more coordinates in ``fixed``.
     """
-    q = jnp.asarray(q)
-    if not jnp.issubdtype(q.dtype, jnp.floating):
-        q = q.astype(jnp.result_type(float))
-    qd = jnp.zeros_like(q) if qd is None else jnp.asarray(qd, q.dtype)
+    q, qd = as_float_state(q, jnp.zeros_like(jnp.asarray(q)) if qd is None else qd)
+    qd = qd.astype(q.dtype)
     args = _as_array_leaves(args)  # new parameter values must not recompile
     system.check(q, qd, t, args)
     n = q.shape[0]

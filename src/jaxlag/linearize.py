@@ -58,6 +58,7 @@ from . import constraints as _constraints
 from . import kkt as _kkt
 from . import mechanics as _mechanics
 from .checks import CONSTRAINT_RCOND, _is_concrete
+from .conventions import as_float_state
 from .simulate import _as_array_leaves
 
 __all__ = ["Linearization", "NormalModes", "linearize", "normal_modes", "tangent_basis"]
@@ -221,10 +222,8 @@ def linearize(
     Returns a :class:`Linearization`. Works under ``jit``, ``vmap`` and ``grad`` (eigenvalues
     and frequencies are differentiable; nonsymmetric eigen-decompositions run on the CPU).
     """
-    q = jnp.asarray(q)
-    if not jnp.issubdtype(q.dtype, jnp.floating):
-        q = q.astype(jnp.result_type(float))
-    qd = jnp.zeros_like(q) if qd is None else jnp.asarray(qd, q.dtype)
+    q, qd = as_float_state(q, jnp.zeros_like(jnp.asarray(q)) if qd is None else qd)
+    qd = qd.astype(q.dtype)
     args = _as_array_leaves(args)  # new parameter values must not recompile
     system.check(q, qd, t, args)
     t = jnp.asarray(t, q.dtype)
