@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import optimistix as optx
 
 from .checks import initial_activity, validate_initial_state
+from .constant_mass import with_constant_mass
 from .constraints import holonomic_residual
 from .conventions import wrap_event_function
 from .kkt import accelerations_and_multipliers
@@ -158,6 +159,8 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
     system.check(q0, qd0, t0, args)
     if check:
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
+    # From here on a state-independent M is inverted once (jaxlag.constant_mass).
+    system = with_constant_mass(system, q0, qd0, t0, args)
     m_h = system.num_holonomic(q0, t0, args)
     unilateral = jnp.zeros((m_h,), bool)
     for i in system.unilateral:

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 
 from .constraints import constraint_rows
 from .linalg import solve_psd_least_squares, solve_spd
-from .mechanics import mass_and_forces
+from .mechanics import mass_solver_and_forces
 
 
 def deactivate(rows, rhs, active):
@@ -40,18 +40,17 @@ def deactivate(rows, rhs, active):
     return rows * weight[:, None], rhs * weight, jnp.diag(1.0 - weight)
 
 
-def solve_kkt(mass, force, rows, rhs, least_squares: bool = False, active=None,
-              diagonal_mass: bool = False):
+def solve_kkt(solve_mass, force, rows, rhs, least_squares: bool = False, active=None):
     """Solve ``M q̈ = F + Gᵀ Λ``, ``G q̈ = c``; return ``(q̈, Λ)``.
 
-    ``active`` (m,) optionally switches constraints off (their multipliers are zero);
-    ``diagonal_mass`` skips the factorization of ``M`` (``M⁻¹ = 1/diag(M)``).
+    ``solve_mass`` applies ``M⁻¹`` to a vector or matrix (:func:`jaxlag.linalg.spd_solver`);
+    ``active`` (m,) optionally switches constraints off (their multipliers are zero).
     """
     m = rows.shape[0]
     if m == 0:
-        return solve_spd(mass, force, diagonal_mass), jnp.zeros((0,), force.dtype)
+        return solve_mass(force), jnp.zeros((0,), force.dtype)
     rows, rhs, pad = deactivate(rows, rhs, active)
-    solved = solve_spd(mass, jnp.concatenate([force[:, None], rows.T], axis=1), diagonal_mass)
+    solved = solve_mass(jnp.concatenate([force[:, None], rows.T], axis=1))
     free, minv_gt = solved[:, 0], solved[:, 1:]
     schur = rows @ minv_gt
     if pad is not None:
@@ -70,12 +69,11 @@ def accelerations_and_multipliers(system, q, qd, t, args, baumgarte=None, active
     ``active`` (m_h,) optionally marks which holonomic constraints currently act (unilateral
     constraints that have let go are inactive; their ``λ`` is zero).
     """
-    mass, force = mass_and_forces(system, q, qd, t, args)
+    solve_mass, force = mass_solver_and_forces(system, q, qd, t, args)
     rows, rhs = constraint_rows(system, q, qd, t, args, baumgarte)
     m_h = system.num_holonomic(q, t, args)
     if active is not None:
         active = jnp.concatenate([jnp.asarray(active, q.dtype),
                                   jnp.ones((rows.shape[0] - m_h,), q.dtype)])
-    qdd, multipliers = solve_kkt(mass, force, rows, rhs, system.least_squares, active,
-                                 system.diagonal_mass)
+    qdd, multipliers = solve_kkt(solve_mass, force, rows, rhs, system.least_squares, active)
     return qdd, multipliers[:m_h], multipliers[m_h:]

@@ -21,7 +21,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from .linalg import solve_spd
+from .linalg import spd_solver
 
 
 def _as_time(t, q):
@@ -42,16 +42,8 @@ def _unit_basis(x):
     return (i[:, None] == i[None, :] + offset).astype(x.dtype)
 
 
-def lagrangian_terms(system, q, qd, t, args):
-    """Return ``(p, M, F_L)``: momenta, mass matrix, and the Lagrangian part of ``F``.
-
-    ``F_L = ∂L/∂q − (∂p/∂q) q̇ − ∂p/∂t`` (without dissipation or external forces). One ``jvp`` of
-    the gradient along ``(q̇, 0, 1)`` in ``(q, q̇, t)`` gives ``∂L/∂q``, ``p`` and the velocity
-    terms; n ``jvp``s of ``p`` along the unit directions in ``q̇`` alone give ``M``, with the ``q``
-    tangents symbolically zero, so what depends on ``q`` only (an explicit ``M(q)`` in
-    ``½q̇ᵀM(q)q̇``) is not pushed forward n times.
-    """
-    t = _as_time(t, q)
+def _velocity_terms(system, q, qd, t, args):
+    """``(∂L/∂q, p, (∂p/∂q) q̇ + ∂p/∂t)`` by one ``jvp`` of the gradient along ``(q̇, 0, 1)``."""
     L = system.lagrangian
 
     def gradient(q_, qd_, t_):
@@ -60,9 +52,26 @@ def lagrangian_terms(system, q, qd, t, args):
     (dL_dq, p), (_, dp_motion) = jax.jvp(
         gradient, (q, qd, t), (qd, jnp.zeros_like(qd), jnp.ones_like(t))
     )
+    return dL_dq, p, dp_motion
+
+
+def lagrangian_terms(system, q, qd, t, args):
+    """Return ``(p, M, F_L)``: momenta, mass matrix, and the Lagrangian part of ``F``.
+
+    ``F_L = ∂L/∂q − (∂p/∂q) q̇ − ∂p/∂t`` (without dissipation or external forces). One ``jvp`` of
+    the gradient along ``(q̇, 0, 1)`` in ``(q, q̇, t)`` gives ``∂L/∂q``, ``p`` and the velocity
+    terms; n ``jvp``s of ``p`` along the unit directions in ``q̇`` alone give ``M``, with the ``q``
+    tangents symbolically zero, so what depends on ``q`` only (an explicit ``M(q)`` in
+    ``½q̇ᵀM(q)q̇``) is not pushed forward n times. A system carrying a
+    :class:`~jaxlag.constant_mass.ConstantMass` skips those n products.
+    """
+    t = _as_time(t, q)
+    dL_dq, p, dp_motion = _velocity_terms(system, q, qd, t, args)
+    if system.constant_mass is not None:
+        return p, system.constant_mass.matrix, dL_dq - dp_motion
 
     def momentum(v):
-        return jax.grad(lambda b: L(q, b, t=t, args=args))(v)
+        return jax.grad(lambda b: system.lagrangian(q, b, t=t, args=args))(v)
 
     # Row i is ∂p/∂q̇_i; M is symmetric, so this is M itself.
     mass = jax.vmap(lambda e: jax.jvp(momentum, (qd,), (e,))[1])(_unit_basis(qd))
@@ -81,6 +90,8 @@ def nonconservative_forces(system, q, qd, t, args):
 
 def mass_matrix(system, q, qd, t=0.0, args=None):
     """``M = ∂²L/∂q̇²``, shape (n, n)."""
+    if system.constant_mass is not None:
+        return jnp.asarray(system.constant_mass.matrix, dtype=q.dtype)
     t = _as_time(t, q)
 
     def momentum(v):
@@ -93,6 +104,23 @@ def mass_and_forces(system, q, qd, t, args):
     """``(M, F)`` of ``M q̈ = F`` with every generalized force included."""
     _, mass, force = lagrangian_terms(system, q, qd, t, args)
     return mass, force + nonconservative_forces(system, q, qd, t, args)
+
+
+def mass_solver(system, q, qd, t, args):
+    """``b ↦ M⁻¹ b`` at a state: ``M`` factored once (or the precomputed constant inverse)."""
+    if system.constant_mass is not None:
+        return system.constant_mass.solve
+    return spd_solver(mass_matrix(system, q, qd, t, args), system.diagonal_mass)
+
+
+def mass_solver_and_forces(system, q, qd, t, args):
+    """``(b ↦ M⁻¹ b, F)``: the right-hand side of ``M q̈ = F`` with ``M`` ready to solve with."""
+    mass, force = mass_and_forces(system, q, qd, t, args)
+    if system.constant_mass is not None:
+        solve = system.constant_mass.solve
+    else:
+        solve = spd_solver(mass, system.diagonal_mass)
+    return solve, force
 
 
 def generalized_forces(system, q, qd, t=0.0, args=None):
@@ -121,8 +149,8 @@ def lagrangian_value(system, q, qd, t=0.0, args=None):
 
 def unconstrained_accelerations(system, q, qd, t, args):
     """``q̈ = M⁻¹ F`` for a system without constraints."""
-    mass, force = mass_and_forces(system, q, qd, t, args)
-    return solve_spd(mass, force, system.diagonal_mass)
+    solve, force = mass_solver_and_forces(system, q, qd, t, args)
+    return solve(force)
 
 
 def dissipated_power(system, q, qd, t=0.0, args=None):

@@ -12,6 +12,7 @@ import numpy as np
 
 from .checks import _is_concrete, validate_initial_state
 from .conventions import as_array_leaves as _as_array_leaves
+from .constant_mass import with_constant_mass
 from .conventions import as_float_state
 from .events import Event, default_root_finder, solve_segments
 from .kkt import accelerations_and_multipliers
@@ -50,10 +51,12 @@ def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, save
     system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation
     if check:
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
+    # A state-independent M (Cartesian particles) is inverted once here, not at every step.
+    fast = with_constant_mass(system, q0, qd0, t0, args)
     if projection is not None:
-        solver = wrap_for_projection(solver, system, projection, adjoint)
+        solver = wrap_for_projection(solver, fast, projection, adjoint)
     solution = diffrax.diffeqsolve(
-        diffrax.ODETerm(EquationsOfMotion(system, baumgarte)),
+        diffrax.ODETerm(EquationsOfMotion(fast, baumgarte)),
         solver,
         t0,
         t1,
@@ -71,7 +74,7 @@ def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, save
     q, qd = solution.ys
     if projection is not None:
         # Saved values between steps come from the solver's interpolant: project them too.
-        q, qd = jax.vmap(lambda t, x, v: projection(system, x, v, t, args))(solution.ts, q, qd)
+        q, qd = jax.vmap(lambda t, x, v: projection(fast, x, v, t, args))(solution.ts, q, qd)
     return Trajectory.from_states(
         system, solution.ts, q, qd, args, stats=solution.stats, result=solution.result
     )

@@ -29,8 +29,8 @@ import jax.numpy as jnp
 
 from . import constraints as _constraints
 from .kkt import deactivate
-from .linalg import solve_psd_least_squares, solve_spd, spd_solver
-from .mechanics import _as_time, mass_matrix
+from .linalg import solve_psd_least_squares, solve_spd
+from .mechanics import _as_time, mass_solver
 
 
 class Baumgarte(eqx.Module):
@@ -71,14 +71,14 @@ def project_state(system, q, qd, t, args, newton_steps: int = 2, active=None,
     of the local error. ``active`` (m_h,) optionally restricts the holonomic constraints.
     """
     t = _as_time(t, q)
-    solve_mass = spd_solver(mass_matrix(system, q, qd, t, args), system.diagonal_mass)
+    solve_mass = mass_solver(system, q, qd, t, args)
     if system.holonomic is not None:
         for _ in range(newton_steps):
             f = _constraints.holonomic_residual(system, q, t, args)
             jac = _constraints.holonomic_jacobian(system, q, t, args, f.shape[0])
             q = q - _schur_correction(system, solve_mass, jac, f, active)
         if refresh_mass:
-            solve_mass = spd_solver(mass_matrix(system, q, qd, t, args), system.diagonal_mass)
+            solve_mass = mass_solver(system, q, qd, t, args)
     rows, residual = [], []
     if system.holonomic is not None:
         def f_of(x, s):

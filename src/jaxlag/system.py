@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -55,6 +56,8 @@ class System(eqx.Module):
     least_squares: bool = eqx.field(static=True)
     unilateral: tuple = eqx.field(static=True)
     diagonal_mass: bool = eqx.field(static=True)
+    # Set by simulate while tracing when M does not depend on the state (jaxlag.constant_mass).
+    constant_mass: Any = None
 
     def __init__(
         self,
@@ -77,6 +80,7 @@ class System(eqx.Module):
         self.forces = wrap_state_function(forces, "force function")
         self.least_squares = bool(least_squares)
         self.diagonal_mass = bool(diagonal_mass)
+        self.constant_mass = None
         if isinstance(unilateral, int):
             unilateral = (unilateral,)
         self.unilateral = tuple(sorted({int(i) for i in unilateral}))
