@@ -41,6 +41,12 @@ def initial_activity(system, q, t, args, tolerance):
 
 @eqx.filter_jit
 def _diagnostics(system, q, qd, t, args, tolerance):
+    """``(values, failures)`` at the initial state, in one compiled call (one host transfer)."""
+    values = _diagnostic_values(system, q, qd, t, args, tolerance)
+    return values, _failures(values, system.least_squares, tolerance)
+
+
+def _diagnostic_values(system, q, qd, t, args, tolerance):
     system.check(q, qd, t, args)
     mass = mass_matrix(system, q, qd, t, args)
     eigenvalues = jnp.linalg.eigvalsh(mass)
@@ -124,9 +130,12 @@ _POINTER = (
 
 def validate_initial_state(system, q, qd, t, args, tolerance: float):
     """Check the initial state; return ``(q, qd)`` (threaded through the run-time checks)."""
-    d = _diagnostics(system, q, qd, t, args, tolerance)
-    fail = _failures(d, system.least_squares, tolerance)
-    if _is_concrete((q, qd, t, args)):
+    d, fail = _diagnostics(system, q, qd, t, args, tolerance)
+    # Concrete inputs can still give traced flags: a user function may close over a traced value.
+    if _is_concrete((q, qd, t, args, fail)):
+        fail = jax.device_get(fail)  # one transfer; the values are fetched only to report
+        if not any(bool(x) for x in fail.values()):
+            return q, qd
         if bool(fail["nonfinite"]):
             raise ValueError(f"The initial state is not finite: q0={np.asarray(q)}, qd0={np.asarray(qd)}.")
         if bool(fail["mass"]):

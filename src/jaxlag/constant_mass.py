@@ -13,9 +13,8 @@ wasted work. Before integrating, :func:`with_constant_mass` traces ``M(q, q̇, t
   inverted once per integration, outside the solver loop, and stays differentiable in ``args``.
 * otherwise (``M(q)`` of generalized coordinates) nothing changes.
 
-The analysis is conservative. An operation's outputs are taken to depend on all of its inputs,
-except for calls whose body is followed (``jit``-ted functions, custom derivatives, checkpoints):
-a false "depends" only loses the speed-up, it never changes a result.
+The analysis (:mod:`jaxlag.dependence`) is conservative: a false "depends" only loses the
+speed-up, it never changes a result.
 """
 
 from __future__ import annotations
@@ -26,18 +25,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.extend import core as jex_core
 
+from .dependence import may_depend
 from .linalg import solve_spd
 from .mechanics import mass_matrix
-
-#: Primitives whose single sub-jaxpr has the same inputs and outputs as the equation itself, so
-#: dependencies can be followed through the body. Loops (``scan``, ``while``) and ``cond`` are
-#: not in this list: their outputs are conservatively taken to depend on every input.
-_CALL_PRIMITIVES = frozenset({
-    "pjit", "jit", "closed_call", "core_call", "custom_jvp_call", "custom_vjp_call",
-    "custom_vjp_call_jaxpr", "checkpoint", "remat", "remat2",
-})
 
 
 class ConstantMass(eqx.Module):
@@ -59,81 +50,41 @@ class ConstantMass(eqx.Module):
         return self.inverse @ b
 
 
-def _literal(x) -> bool:
-    return isinstance(x, jex_core.Literal)
+def _mass(q, qd, t, args, system):
+    """``M(q, q̇, t)`` with a plain identity basis (kept traceable for the analysis)."""
 
+    def momentum(v):
+        return jax.grad(lambda b: system.lagrangian(q, b, t=t, args=args))(v)
 
-def _output_dependence(jaxpr, input_flags, const_flags):
-    """For each output of ``jaxpr``, whether it depends on an input or constant flagged True."""
-    depends = {}
-    for var, flag in zip(jaxpr.constvars, const_flags):
-        depends[var] = flag
-    for var, flag in zip(jaxpr.invars, input_flags):
-        depends[var] = flag
-
-    def flag_of(var):
-        return False if _literal(var) else depends.get(var, False)
-
-    for eqn in jaxpr.eqns:
-        in_flags = [flag_of(v) for v in eqn.invars]
-        out_flags = None
-        if eqn.primitive.name in _CALL_PRIMITIVES:
-            bodies = list(jex_core.jaxprs_in_params(eqn.params))
-            if len(bodies) == 1:
-                body = bodies[0]
-                if len(body.invars) == len(in_flags) and len(body.outvars) == len(eqn.outvars):
-                    out_flags = _output_dependence(body, in_flags, [False] * len(body.constvars))
-        if out_flags is None:
-            out_flags = [any(in_flags)] * len(eqn.outvars)
-        for var, flag in zip(eqn.outvars, out_flags):
-            depends[var] = flag
-    return [flag_of(v) for v in jaxpr.outvars]
-
-
-def _mass_function(system, static_args):
-    """``M(q, q̇, t, array_args)`` with a plain identity basis (kept traceable for the analysis)."""
-
-    def mass(q, qd, t, array_args):
-        args = eqx.combine(array_args, static_args)
-
-        def momentum(v):
-            return jax.grad(lambda b: system.lagrangian(q, b, t=t, args=args))(v)
-
-        basis = jnp.eye(q.shape[0], dtype=qd.dtype)
-        return jax.vmap(lambda e: jax.jvp(momentum, (qd,), (e,))[1])(basis)
-
-    return mass
+    basis = jnp.eye(q.shape[0], dtype=qd.dtype)
+    return jax.vmap(lambda e: jax.jvp(momentum, (qd,), (e,))[1])(basis)
 
 
 def mass_dependence(system, q, qd, t, args):
-    """``(on_state, on_parameters)``: whether ``M`` may depend on ``(q, q̇, t)`` and on traced
-    parameters (the arrays in ``args`` or traced values the user's functions close over)."""
-    array_args, static_args = eqx.partition(args, eqx.is_array)
-    spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)),
-                        (q, qd, t, array_args))
-    closed = jax.make_jaxpr(_mass_function(system, static_args))(*spec)
-    num_state = len(jax.tree.leaves(spec[:3]))
-    num_inputs = len(closed.jaxpr.invars)
-    state_flags = [i < num_state for i in range(num_inputs)]
-    parameter_flags = [i >= num_state for i in range(num_inputs)]
-    traced_consts = [isinstance(c, jax.core.Tracer) for c in closed.consts]
-    no_consts = [False] * len(closed.consts)
-    (on_state,) = _output_dependence(closed.jaxpr, state_flags, no_consts)
-    (on_parameters,) = _output_dependence(closed.jaxpr, parameter_flags, traced_consts)
-    return bool(on_state), bool(on_parameters)
+    """``(on_state, on_parameters)``: whether ``M`` may depend on ``(q, q̇, t)``, and on traced
+    parameters (the arrays in ``args`` or in ``system``, or traced values its functions close
+    over)."""
+    (on_q, on_qd, on_t, on_args, on_system), on_closure = may_depend(
+        _mass, (q, qd, t, args, system)
+    )
+    return on_q or on_qd or on_t, on_args or on_system or on_closure
 
 
 def _concrete_mass(system, q, qd, t, args):
-    """``M`` as a NumPy array, evaluated while tracing; ``None`` if that is not possible."""
-    array_args, static_args = eqx.partition(args, eqx.is_array)
-    dummy = jax.tree.map(lambda x: np.zeros(jnp.shape(x), jnp.result_type(x)),
-                         (q, qd, t, array_args))
+    """``M`` as a NumPy array, evaluated while tracing; ``None`` if that is not possible.
+
+    Only called when ``M`` depends on no input, so the inputs (and the arrays in ``args`` and
+    ``system``) are replaced by zeros: nothing traced enters the evaluation except what the
+    user's functions close over, on which ``M`` does not depend either.
+    """
+    def zeros(x):
+        return np.zeros(jnp.shape(x), jnp.result_type(x)) if eqx.is_array(x) else x
+
+    inputs = jax.tree.map(zeros, (q, qd, t, args, system))
     try:
         with jax.ensure_compile_time_eval():
-            value = _mass_function(system, static_args)(*dummy)
-        return np.asarray(value)
-    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
-            jax.errors.UnexpectedTracerError):
+            return np.asarray(_mass(*inputs))
+    except Exception:  # noqa: BLE001 - an optimisation: fall back to inverting M at run time
         return None
 
 

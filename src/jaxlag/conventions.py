@@ -139,8 +139,7 @@ def as_array_leaves(tree):
 
     def convert(x):
         if isinstance(x, (float, complex, np.ndarray, np.floating)):
-            x = jnp.asarray(x)
-            return jnp.asarray(x, dtype=x.dtype)
+            return jnp.asarray(x, dtype=jax.dtypes.canonicalize_dtype(np.result_type(x)))
         return x
 
     return jax.tree.map(convert, tree)

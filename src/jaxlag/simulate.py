@@ -45,6 +45,14 @@ class EquationsOfMotion(eqx.Module):
         return qd, qdd
 
 
+def _as_time(t, dtype):
+    """A time as a 0-d array; concrete values stay on the host (NumPy) until the compiled call,
+    which transfers them with the other inputs instead of one eager device operation each."""
+    if isinstance(t, jax.core.Tracer) or isinstance(t, jax.Array):
+        return jnp.asarray(t, dtype=dtype)
+    return np.asarray(t, dtype=dtype)
+
+
 @eqx.filter_jit
 def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat, max_steps,
            adjoint, event, throw, progress_meter, baumgarte, projection, check, tolerance):
@@ -149,18 +157,19 @@ def simulate(
         ts = jnp.asarray(ts, dtype=q0.dtype)
         if ts.ndim != 1 or ts.shape[0] < 1:
             raise ValueError(f"ts must be a non-empty 1-D array of save times; got shape {ts.shape}.")
-        if _is_concrete(ts) and not np.all(np.diff(np.asarray(ts)) > 0):
+        # Concrete save times are checked and sliced on the host: no eager device operations.
+        ends = np.asarray(ts) if _is_concrete(ts) else ts
+        if _is_concrete(ts) and not np.all(np.diff(ends) > 0):
             raise ValueError("ts must be strictly increasing.")
-        t0 = ts[0] if t0 is None else t0
-        t1 = ts[-1] if t1 is None else t1
+        t0 = ends[0] if t0 is None else t0
+        t1 = ends[-1] if t1 is None else t1
         if saveat is None:
             saveat = diffrax.SaveAt(ts=ts)
     if t0 is None or t1 is None:
         raise ValueError("Give save times `ts`, or `t0` and `t1` (with a diffrax.SaveAt).")
     if saveat is None:
         saveat = diffrax.SaveAt(t1=True)
-    t0 = jnp.asarray(t0, dtype=q0.dtype)
-    t1 = jnp.asarray(t1, dtype=q0.dtype)
+    t0, t1 = _as_time(t0, q0.dtype), _as_time(t1, q0.dtype)
     if solver is None:
         solver = diffrax.Tsit5()
     if stepsize_controller is None:
@@ -190,7 +199,8 @@ def simulate(
     check_in_jit = check_initial_state
     if check_initial_state and _is_concrete((q0, qd0, t0, args)):
         # Concrete inputs: check eagerly, so that errors carry the numbers and constraint names.
-        validate_initial_state(system, q0, qd0, t0, args, constraint_tolerance)
+        # (Returns the state threaded through compiled checks if the flags turn out traced.)
+        q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, constraint_tolerance)
         check_in_jit = False
     if segmented:
         if event_root_finder is None:

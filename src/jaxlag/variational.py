@@ -68,13 +68,9 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-try:  # the public home of jaxpr literals; older JAX kept them in jax.core
-    from jax.extend.core import Literal
-except ImportError:  # pragma: no cover
-    from jax.core import Literal
-
 from . import constraints as _constraints
 from .checks import _is_concrete, validate_initial_state
+from .dependence import may_depend
 from .kkt import accelerations_and_multipliers, solve_kkt
 from .linalg import solve_spd, spd_solver
 from .mechanics import _as_time, mass_matrix, nonconservative_forces
@@ -99,31 +95,6 @@ class LagrangianStructure(NamedTuple):
     constant_mass: bool
 
 
-def _may_depend(fn, inputs) -> list[bool]:
-    """For each entry of ``inputs``: may ``fn(*inputs)`` depend on it? (never a false ``False``).
-
-    Array leaves are abstracted (so traced values and closures are fine); any primitive whose
-    inputs include a dependent value is taken to make all its outputs dependent.
-    """
-    dynamic, static = eqx.partition(tuple(inputs), eqx.is_array)
-    leaves, treedef = jax.tree.flatten(dynamic)
-    groups = [i for i, part in enumerate(dynamic) for _ in jax.tree.leaves(part)]
-    abstract = [jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)) for x in leaves]
-
-    def flat_fn(*flat):
-        return fn(*eqx.combine(jax.tree.unflatten(treedef, list(flat)), static))
-
-    jaxpr = jax.make_jaxpr(flat_fn)(*abstract).jaxpr
-    out = []
-    for g in range(len(inputs)):
-        tainted = {v for v, gi in zip(jaxpr.invars, groups) if gi == g}
-        for eqn in jaxpr.eqns:
-            if any(not isinstance(v, Literal) and v in tainted for v in eqn.invars):
-                tainted.update(eqn.outvars)
-        out.append(any(not isinstance(v, Literal) and v in tainted for v in jaxpr.outvars))
-    return out
-
-
 def lagrangian_structure(system: System, q, qd, t=0.0, args=None) -> LagrangianStructure:
     """Analyse ``L`` statically (shapes only); see :class:`LagrangianStructure`."""
     q = jnp.asarray(q)
@@ -139,10 +110,10 @@ def lagrangian_structure(system: System, q, qd, t=0.0, args=None) -> LagrangianS
         return jax.jvp(lambda v: momentum(q_, v, t_, args_, system_), (qd_,), (direction,))[1]
 
     try:
-        on_qd = _may_depend(hessian_product, (q, qd, t, args, system, qd))[1]
+        on_qd = may_depend(hessian_product, (q, qd, t, args, system, qd))[0][1]
         if on_qd:
             return LagrangianStructure(False, False)
-        dep = _may_depend(momentum, (q, qd, t, args, system))
+        dep, _ = may_depend(momentum, (q, qd, t, args, system))
         return LagrangianStructure(True, not (dep[0] or dep[2]))
     except Exception:  # noqa: BLE001 - the analysis is an optimisation; never fail because of it
         return LagrangianStructure(False, False)
@@ -681,7 +652,7 @@ def simulate_variational(
     )
     check_in_jit = check_initial_state
     if check_initial_state and _is_concrete((q0, qd0, t0, args)):
-        validate_initial_state(system, q0, qd0, t0, args, constraint_tolerance)
+        q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, constraint_tolerance)
         check_in_jit = False
     return _integrate(scheme, system, q0, qd0, t0, dt, args, num_steps, save_every,
                       bool(throw), check_in_jit, float(constraint_tolerance))
