@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .checks import MASS_RCOND
 from .dependence import may_depend
 from .linalg import solve_spd
 from .mechanics import mass_matrix
@@ -89,9 +90,11 @@ def _concrete_mass(system, q, qd, t, args):
 
 
 def _constant_from_value(mass: np.ndarray) -> ConstantMass:
-    eigenvalues = np.linalg.eigvalsh(0.5 * (mass + mass.T)) if mass.size else np.ones(1)
-    if not (np.all(np.isfinite(mass)) and np.allclose(mass, mass.T, rtol=1e-12, atol=0.0)
-            and eigenvalues.min() > 1e-12 * np.abs(eigenvalues).max()):
+    """Invert a concrete ``M``; raise if it is singular (the Lagrangian is degenerate)."""
+    mass = 0.5 * (mass + mass.T)  # a Hessian: symmetric up to rounding
+    eigenvalues = np.linalg.eigvalsh(mass) if mass.size else np.ones(1)
+    if not (np.all(np.isfinite(mass))
+            and eigenvalues.min() > MASS_RCOND * np.abs(eigenvalues).max()):
         raise ValueError(
             "The mass matrix M = ∂²L/∂q̇² is singular or not positive definite (it is constant: "
             f"it depends on no coordinate, velocity or parameter; eigenvalues {eigenvalues}). The "
