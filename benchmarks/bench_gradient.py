@@ -11,7 +11,9 @@ Contenders (each compiled ahead of time, timed alternately):
 * reverse: ``jax.grad(ℓ)`` through diffrax's default ``RecursiveCheckpointAdjoint`` (the default
   of ``jl.simulate``; ``max_steps`` = 65536 gives ~362 checkpoints);
 * forward mode: ``jax.jacfwd(ℓ)`` with ``adjoint=diffrax.ForwardMode()``: 3 tangents pushed
-  along the solve, no tape (what ``jl.fit`` uses for its Jacobians).
+  along the solve, no tape (what ``jl.fit`` uses for its Jacobians);
+* ``jax.grad(ℓ)`` with ``adjoint=jl.ForwardSensitivities()`` (jaxlag only): reverse mode for
+  the user, forward sensitivities inside (``jaxlag.sensitivities``).
 
 for jaxlag with a constant step (2000 steps of 1e-3) and with an adaptive
 ``PIDController(rtol=1e-8, atol=1e-8)``, and at the constant step also for the explicit
@@ -105,11 +107,15 @@ def contenders(kind, ts, controller, dt0):
     data = trajectory(kind, PARAMS_TRUE, ts, controller, dt0, diffrax.RecursiveCheckpointAdjoint())
     reverse = make_loss(kind, ts, controller, dt0, diffrax.RecursiveCheckpointAdjoint(), data)
     forward = make_loss(kind, ts, controller, dt0, diffrax.ForwardMode(), data)
-    return [
+    out = [
         (f"{kind}: forward pass", reverse),
         (f"{kind}: grad, RecursiveCheckpointAdjoint", jax.grad(reverse)),
         (f"{kind}: jacfwd, ForwardMode", jax.jacfwd(forward)),
     ]
+    if kind == "jaxlag":
+        by_sensitivities = make_loss(kind, ts, controller, dt0, jl.ForwardSensitivities(), data)
+        out.append((f"{kind}: grad, jl.ForwardSensitivities", jax.grad(by_sensitivities)))
+    return out
 
 
 def _params():
@@ -136,6 +142,8 @@ def memory_rows():
                             diffrax.RecursiveCheckpointAdjoint(), data))),
         ("jacfwd, ForwardMode",
          jax.jacfwd(make_loss("jaxlag", ts, controller, dt0, diffrax.ForwardMode(), data))),
+        ("grad, jl.ForwardSensitivities",
+         jax.grad(make_loss("jaxlag", ts, controller, dt0, jl.ForwardSensitivities(), data))),
     ]:
         c = common.compile_contender(name, fn, _params())
         c.samples = [common._sample(c) for _ in range(3)]
@@ -169,6 +177,8 @@ def run():
                                  cs[1].median / fwd.median, TARGET_REVERSE))
                 verdicts.append((f"gradient, {label[:8]}", cs[2].name, "x(fwd)",
                                  cs[2].median / fwd.median, TARGET_FORWARD_MODE))
+                verdicts.append((f"gradient, {label[:8]}", cs[3].name, "x(fwd)",
+                                 cs[3].median / fwd.median, TARGET_REVERSE))
 
     common.print_table(
         f"Gradient cost: double pendulum, θ = (g, l₁, l₂), loss over {SAVES} saves in [0, {T1:g}], "

@@ -11,6 +11,7 @@ from .conventions import UserFunction
 from .events import Event, EventLog, multiplier_limit
 from .fit import Bounded, Experiment, FitResult, Positive, fit, least_squares_loss
 from .kkt import solve_kkt
+from .sensitivities import ForwardSensitivities
 from .simulate import EquationsOfMotion, simulate
 from .stabilization import Baumgarte, ProjectedSolver, Projection, consistent_initial_state
 from .system import System
@@ -30,6 +31,7 @@ __all__ = [
     "EventLog",
     "Experiment",
     "FitResult",
+    "ForwardSensitivities",
     "Positive",
     "ProjectedSolver",
     "Projection",

@@ -23,7 +23,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from .constraints import constraint_rows
-from .linalg import solve_psd_least_squares, solve_spd
+from .linalg import solve_psd_least_squares, solve_spd, spd_solver
 from .mechanics import mass_solver_and_forces
 
 
@@ -40,12 +40,15 @@ def deactivate(rows, rhs, active):
     return rows * weight[:, None], rhs * weight, jnp.diag(1.0 - weight)
 
 
-def solve_kkt(solve_mass, force, rows, rhs, least_squares: bool = False, active=None):
+def solve_kkt(mass, force, rows, rhs, least_squares: bool = False, active=None,
+              diagonal_mass: bool = False):
     """Solve ``M q̈ = F + Gᵀ Λ``, ``G q̈ = c``; return ``(q̈, Λ)``.
 
-    ``solve_mass`` applies ``M⁻¹`` to a vector or matrix (:func:`jaxlag.linalg.spd_solver`);
+    ``mass`` is ``M`` (n, n), factored here (a division if ``diagonal_mass``), or a function
+    ``b ↦ M⁻¹ b`` for vectors and matrices (e.g. :func:`jaxlag.linalg.spd_solver`'s result);
     ``active`` (m,) optionally switches constraints off (their multipliers are zero).
     """
+    solve_mass = mass if callable(mass) else spd_solver(mass, diagonal_mass)
     m = rows.shape[0]
     if m == 0:
         return solve_mass(force), jnp.zeros((0,), force.dtype)

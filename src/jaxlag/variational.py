@@ -72,7 +72,7 @@ from . import constraints as _constraints
 from .checks import _is_concrete, validate_initial_state
 from .dependence import may_depend
 from .kkt import accelerations_and_multipliers, solve_kkt
-from .linalg import solve_spd, spd_solver
+from .linalg import solve_spd
 from .mechanics import _as_time, mass_matrix, nonconservative_forces
 from .simulate import _as_array_leaves
 from .system import System
@@ -306,7 +306,7 @@ def _velocity_stage(scheme, system, q1, p_tilde, t1, args, qd_guess, constants):
         if scheme.constant_mass:
             qd1, nu = _project_with_inverse(minv, p_tilde - b, jac1, -f_t1)
         else:
-            qd1, nu = solve_kkt(spd_solver(mass, diagonal), p_tilde - b, jac1, -f_t1)
+            qd1, nu = solve_kkt(mass, p_tilde - b, jac1, -f_t1, diagonal_mass=diagonal)
         return qd1, p_tilde + jac1.T @ nu, nu, jac1, no_iterations, success
     ctx = (system, q1, p_tilde, t1, jac1, f_t1, args)
     if jac1 is None:
