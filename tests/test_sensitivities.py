@@ -109,3 +109,17 @@ def test_nothing_differentiated_and_forward_mode_pointer():
                                          adjoint=FS).q)(9.81)
     with pytest.raises(TypeError, match="adjoint"):
         jl.simulate(SYSTEM, Q0, QD0, TS, args=PARAMS, adjoint="forward")
+
+
+def test_too_many_differentiated_scalars_is_a_clear_error():
+    weights = jnp.linspace(0.5, 1.5, 300)  # e.g. the weights of a learned kinetic term
+
+    def lagrangian(q, qd, args):
+        return 0.5 * jnp.mean(args) * jnp.sum(qd**2) - 0.5 * jnp.sum(q**2)
+
+    def loss(w):
+        return jnp.sum(jl.simulate(jl.System(lagrangian), jnp.ones(2), jnp.zeros(2), TS[:3],
+                                   args=w, adjoint=FS).q)
+
+    with pytest.raises(ValueError, match="300 differentiated scalars"):
+        jax.grad(loss)(weights)

@@ -39,10 +39,13 @@ class ForwardSensitivities(eqx.Module):
 
     Cheaper than the default checkpointed adjoint when few inputs are differentiated (k ≲ 10);
     see :mod:`jaxlag.sensitivities`. ``inner`` is the diffrax adjoint used to push the
-    simulation forward (``diffrax.ForwardMode()``).
+    simulation forward (``diffrax.ForwardMode()``). Differentiating more than ``max_tangents``
+    scalars at once (the weights of a neural Lagrangian, say) raises an error that points to the
+    default adjoint, instead of building a ``k × k`` basis.
     """
 
     inner: diffrax.AbstractAdjoint = diffrax.ForwardMode()
+    max_tangents: int = eqx.field(static=True, default=256)
 
 
 def _is_symbolic_zero(x) -> bool:
@@ -59,7 +62,8 @@ def _split_inexact(tree):
     return eqx.partition(tree, eqx.is_inexact_array)
 
 
-def call_with_forward_sensitivities(run: Callable[[Any], Any], inputs: Any) -> Any:
+def call_with_forward_sensitivities(run: Callable[[Any], Any], inputs: Any,
+                                    max_tangents: int = 256) -> Any:
     """``run(inputs)``, whose reverse-mode derivative is computed from forward sensitivities.
 
     ``inputs`` is any pytree; its floating-point array leaves are the differentiable inputs.
@@ -90,6 +94,13 @@ def call_with_forward_sensitivities(run: Callable[[Any], Any], inputs: Any) -> A
                  for leaf, (shape, _) in zip(leaves, shapes)]
         perturbed_sizes[:] = sizes
         k = sum(sizes)
+        if k > max_tangents:
+            raise ValueError(
+                f"jl.ForwardSensitivities: {k} differentiated scalars would each need a tangent "
+                f"(limit max_tangents={max_tangents}). For many parameters use the default "
+                "adjoint (diffrax.RecursiveCheckpointAdjoint), whose cost does not grow with "
+                "their number."
+            )
         if k == 0:
             inexact, rest = evaluate(primals)
             return eqx.combine(inexact, rest), None

@@ -210,9 +210,9 @@ def simulate(
         check_in_jit = False
     if segmented and event_root_finder is None:
         event_root_finder = default_root_finder()
-    by_sensitivities = isinstance(adjoint, ForwardSensitivities)
-    if by_sensitivities:
-        adjoint = adjoint.inner
+    sensitivities = adjoint if isinstance(adjoint, ForwardSensitivities) else None
+    if sensitivities is not None:
+        adjoint = sensitivities.inner
 
     def run(inputs):
         system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller = inputs
@@ -230,6 +230,6 @@ def simulate(
         )
 
     inputs = (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller)
-    if by_sensitivities:
-        return call_with_forward_sensitivities(run, inputs)
+    if sensitivities is not None:
+        return call_with_forward_sensitivities(run, inputs, sensitivities.max_tangents)
     return run(inputs)
