@@ -738,3 +738,25 @@ def test_declared_diagonal_mass_that_is_not_diagonal_is_an_error():
     with pytest.raises(ValueError, match="diagonal_mass"):
         jl.simulate(jl.System(lagrangian, diagonal_mass=True), jnp.zeros(2), jnp.ones(2),
                     jnp.linspace(0.0, 1.0, 3))
+
+
+def test_solve_kkt_accepts_a_matrix_or_a_solver():
+    # M q̈ = F + Jᵀλ, J q̈ = c for a random SPD M: the residuals of both equations vanish, and
+    # passing M, a factored solver, or declaring a diagonal M all give the same answer.
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(5, 5))
+    mass = jnp.asarray(a @ a.T + 5 * np.eye(5))
+    force, rows, rhs = (jnp.asarray(rng.normal(size=s)) for s in ((5,), (2, 5), (2,)))
+    qdd, lam = jl.solve_kkt(mass, force, rows, rhs)
+    np.testing.assert_allclose(mass @ qdd, force + rows.T @ lam, atol=1e-12)
+    np.testing.assert_allclose(rows @ qdd, rhs, atol=1e-12)
+    from jaxlag.linalg import spd_solver
+
+    qdd2, lam2 = jl.solve_kkt(spd_solver(mass), force, rows, rhs)
+    np.testing.assert_allclose(qdd2, qdd, atol=1e-12)
+    np.testing.assert_allclose(lam2, lam, atol=1e-12)
+    diagonal = jnp.diag(jnp.diagonal(mass))
+    qdd3, lam3 = jl.solve_kkt(diagonal, force, rows, rhs, diagonal_mass=True)
+    qdd4, lam4 = jl.solve_kkt(diagonal, force, rows, rhs)
+    np.testing.assert_allclose(qdd3, qdd4, atol=1e-12)
+    np.testing.assert_allclose(lam3, lam4, atol=1e-12)
