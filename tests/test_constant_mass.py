@@ -213,3 +213,19 @@ def test_constant_step_solver_and_forward_mode():
     h = 1e-6
     fd = jnp.stack([(final(m.at[i].add(h)) - final(m.at[i].add(-h))) / (2 * h) for i in range(3)], axis=1)
     np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-8)
+
+
+def test_args_with_keys_and_integers():
+    # Non-float leaves in args (a PRNG key, an integer array) neither break the analysis nor the
+    # once-per-call evaluation; the trajectory is the closed-form free fall y = 1 − g t²/2.
+    def lagrangian(q, qd, args):
+        noise = 0.0 * jax.random.normal(args["key"], ()) * args["count"][0]
+        return 0.5 * jnp.sum(qd**2) - args["g"] * q[1] + noise
+
+    args = {"g": 9.81, "key": jax.random.key(0), "count": jnp.array([3])}
+    ts = jnp.linspace(0.0, 1.0, 3)
+    traj = jl.simulate(jl.System(lagrangian), jnp.array([0.0, 1.0]), jnp.zeros(2), ts, args=args)
+    np.testing.assert_allclose(traj.q[:, 1], 1.0 - 0.5 * 9.81 * ts**2, atol=1e-12)
+    found = constant_mass(jl.System(lagrangian), jnp.zeros(2), jnp.zeros(2), T0,
+                          {"g": jnp.asarray(9.81), "key": jax.random.key(0), "count": jnp.array([3])})
+    assert found is not None and found.inverse_diagonal is not None

@@ -78,11 +78,11 @@ def _concrete_mass(system, q, qd, t, args):
     ``system``) are replaced by zeros: nothing traced enters the evaluation except what the
     user's functions close over, on which ``M`` does not depend either.
     """
-    def zeros(x):
-        return np.zeros(jnp.shape(x), jnp.result_type(x)) if eqx.is_array(x) else x
+    def zeros(x):  # other arrays (integers, PRNG keys) are kept: M does not depend on them
+        return np.zeros(jnp.shape(x), jnp.result_type(x)) if eqx.is_inexact_array(x) else x
 
-    inputs = jax.tree.map(zeros, (q, qd, t, args, system))
     try:
+        inputs = jax.tree.map(zeros, (q, qd, t, args, system))
         with jax.ensure_compile_time_eval():
             return np.asarray(_mass(*inputs))
     except Exception:  # noqa: BLE001 - an optimisation: fall back to inverting M at run time
@@ -110,7 +110,10 @@ def _constant_from_value(mass: np.ndarray) -> ConstantMass:
 def constant_mass(system, q, qd, t, args) -> ConstantMass | None:
     """The state-independent mass matrix of ``system`` inverted once, or ``None`` if ``M`` may
     depend on the state (see the module docstring)."""
-    on_state, on_parameters = mass_dependence(system, q, qd, t, args)
+    try:
+        on_state, on_parameters = mass_dependence(system, q, qd, t, args)
+    except Exception:  # noqa: BLE001 - an optimisation: an L it cannot analyse takes the general path
+        return None
     if on_state:
         return None
     if not on_parameters:
