@@ -16,9 +16,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import jaxlag as jl
-from jaxlag.constant_mass import ConstantMass, constant_mass, mass_dependence
+from jaxlag.constant_mass import ConstantMass, constant_mass, mass_dependence, with_constant_mass
+from jaxlag.kkt import accelerations_and_multipliers
 
 jax.config.update("jax_enable_x64", True)
 
@@ -229,3 +232,48 @@ def test_args_with_keys_and_integers():
     found = constant_mass(jl.System(lagrangian), jnp.zeros(2), jnp.zeros(2), T0,
                           {"g": jnp.asarray(9.81), "key": jax.random.key(0), "count": jnp.array([3])})
     assert found is not None and found.inverse_diagonal is not None
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    n=st.integers(1, 4),
+    seed=st.integers(0, 2**31 - 1),
+    state_dependent=st.booleans(),
+    gyroscopic=st.booleans(),
+)
+def test_decision_and_equations_over_random_lagrangians(n, seed, state_dependent, gyroscopic):
+    """L = ½q̇ᵀ(A + s·diag(1 + sin²q))q̇ + g(q)·q̇ − V(q) with a random SPD A: M depends on the
+    state exactly when s ≠ 0 (a gyroscopic term b(q)·q̇ never changes M), the constant M found is
+    A, and the constrained accelerations and multipliers equal the general path's to 1e-12."""
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(n, n))
+    a = jnp.asarray(a @ a.T + n * np.eye(n))
+    b = jnp.asarray(rng.normal(size=(n, n)))
+    k = jnp.asarray(rng.uniform(0.5, 2.0, size=n))
+
+    def lagrangian(q, qd):
+        kinetic = 0.5 * qd @ a @ qd
+        if state_dependent:
+            kinetic = kinetic + 0.5 * jnp.sum((1.0 + jnp.sin(q) ** 2) * qd**2)
+        magnetic = jnp.tanh(b @ q) @ qd if gyroscopic else 0.0
+        return kinetic + magnetic - 0.5 * jnp.sum(k * q**2) - jnp.sum(jnp.cos(q))
+
+    def constraint(q):
+        return jnp.array([jnp.sum(q**2) - 1.0])
+
+    system = jl.System(lagrangian, constraint)
+    q = jnp.asarray(rng.normal(size=n))
+    q = q / jnp.linalg.norm(q)
+    qd = jnp.asarray(rng.normal(size=n))
+    on_state, on_parameters = mass_dependence(system, q, qd, T0, None)
+    assert on_state == state_dependent and not on_parameters
+    found = constant_mass(system, q, qd, T0, None)
+    if state_dependent:
+        assert found is None
+        return
+    np.testing.assert_allclose(found.matrix, a, rtol=1e-13)
+    fast = with_constant_mass(system, q, qd, T0, None)
+    fast_out = accelerations_and_multipliers(fast, q, qd, T0, None)
+    slow_out = accelerations_and_multipliers(system, q, qd, T0, None)
+    for x, y in zip(fast_out, slow_out):
+        np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
