@@ -8,12 +8,13 @@ The loss is a least-squares misfit to a reference trajectory saved at 41 times i
 Contenders (each compiled ahead of time, timed alternately):
 
 * forward: ``ℓ(θ)``;
-* reverse: ``jax.grad(ℓ)`` through diffrax's default ``RecursiveCheckpointAdjoint`` (the default
-  of ``jl.simulate``; ``max_steps`` = 65536 gives ~362 checkpoints);
+* reverse: ``jax.grad(ℓ)`` through diffrax's ``RecursiveCheckpointAdjoint`` (diffrax's default;
+  ``max_steps`` = 65536 gives ~362 checkpoints);
 * forward mode: ``jax.jacfwd(ℓ)`` with ``adjoint=diffrax.ForwardMode()``: 3 tangents pushed
   along the solve, no tape (what ``jl.fit`` uses for its Jacobians);
-* ``jax.grad(ℓ)`` with ``adjoint=jl.ForwardSensitivities()`` (jaxlag only): reverse mode for
-  the user, forward sensitivities inside (``jaxlag.sensitivities``).
+* ``jax.grad(ℓ)`` with jaxlag's default adjoint ``jl.ForwardSensitivities()`` (jaxlag only):
+  reverse mode for the user, forward sensitivities inside for ≤ 10 differentiated scalars
+  (``jaxlag.sensitivities``).
 
 for jaxlag with a constant step (2000 steps of 1e-3) and with an adaptive
 ``PIDController(rtol=1e-8, atol=1e-8)``, and at the constant step also for the explicit
@@ -114,7 +115,8 @@ def contenders(kind, ts, controller, dt0):
     ]
     if kind == "jaxlag":
         by_sensitivities = make_loss(kind, ts, controller, dt0, jl.ForwardSensitivities(), data)
-        out.append((f"{kind}: grad, jl.ForwardSensitivities", jax.grad(by_sensitivities)))
+        out.append((f"{kind}: grad, default adjoint (jl.ForwardSensitivities)",
+                    jax.grad(by_sensitivities)))
     return out
 
 
@@ -142,7 +144,7 @@ def memory_rows():
                             diffrax.RecursiveCheckpointAdjoint(), data))),
         ("jacfwd, ForwardMode",
          jax.jacfwd(make_loss("jaxlag", ts, controller, dt0, diffrax.ForwardMode(), data))),
-        ("grad, jl.ForwardSensitivities",
+        ("grad, default adjoint (jl.ForwardSensitivities)",
          jax.grad(make_loss("jaxlag", ts, controller, dt0, jl.ForwardSensitivities(), data))),
     ]:
         c = common.compile_contender(name, fn, _params())

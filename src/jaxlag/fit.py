@@ -15,8 +15,8 @@ Two optimizers:
   solvers. The Jacobian of the residuals is built in forward mode (``diffrax.ForwardMode``), one
   tangent per parameter, which for a handful of parameters is far cheaper than reverse mode.
 * any ``optax.GradientTransformation``: gradient descent on ``ℓ`` with ``jax.value_and_grad``
-  through the simulation (by :class:`~jaxlag.ForwardSensitivities` for up to
-  ``FORWARD_SENSITIVITIES_MAX`` free scalars, else ``diffrax.RecursiveCheckpointAdjoint``).
+  through the simulation (the default :class:`~jaxlag.ForwardSensitivities`: forward
+  sensitivities for up to 10 free scalars, else ``diffrax.RecursiveCheckpointAdjoint``).
 
 Standard errors come from the Gauss–Newton approximation at the optimum: with the Jacobian
 ``J = ∂r/∂θ`` in physical parameters, ``Cov = σ̂² (JᵀJ)⁻¹``, where ``σ̂² = |r|²/(N − p)`` is
@@ -270,17 +270,10 @@ def _ls_loss(model, free, data, fixed_states):
     return 0.5 * jnp.sum(model.residuals(free, data, fixed_states, diffrax.ForwardMode()) ** 2)
 
 
-#: Up to this many free scalars the optax path's gradient uses forward sensitivities (cost
-#: ≈ 1 + 0.43 k forward passes, measured for k = 3) rather than the checkpointed adjoint (≈ 5.5–7
-#: forward passes whatever k): the crossover is at k ≈ 11–14.
-FORWARD_SENSITIVITIES_MAX = 10
-
-
 @eqx.filter_jit
 def _value_and_grad(model, free, data, fixed_states):
-    k = sum(x.size for x in jax.tree.leaves(free))
-    adjoint = (ForwardSensitivities() if k <= FORWARD_SENSITIVITIES_MAX
-               else diffrax.RecursiveCheckpointAdjoint())
+    # The default adjoint: forward sensitivities for up to 10 free scalars, else checkpointed.
+    adjoint = ForwardSensitivities()
     return jax.value_and_grad(
         lambda f: 0.5 * jnp.sum(model.residuals(f, data, fixed_states, adjoint) ** 2)
     )(free)
@@ -500,14 +493,14 @@ def least_squares_loss(system, params: dict, experiments, *, observe: Callable |
                        simulate_kwargs: dict | None = None):
     """The fit's loss ``½ Σ r²`` at physical ``params`` (single shooting, known initial states).
 
-    Differentiable with ``jax.grad`` (default diffrax adjoint) and ``jax.jacfwd`` (pass
-    ``simulate_kwargs={"adjoint": diffrax.ForwardMode()}``); useful to check gradients or to
-    drive your own optimizer.
+    Differentiable with ``jax.grad`` (the default adjoint of :func:`~jaxlag.simulate`) and
+    ``jax.jacfwd`` (pass ``simulate_kwargs={"adjoint": diffrax.ForwardMode()}``); useful to check
+    gradients or to drive your own optimizer.
     """
     batch = _stack(experiments)
     observe = wrap_state_function(observe or _observe_coordinates, "observation function")
     simulate_kwargs = dict(simulate_kwargs or {})
-    adjoint = simulate_kwargs.pop("adjoint", diffrax.RecursiveCheckpointAdjoint())
+    adjoint = simulate_kwargs.pop("adjoint", ForwardSensitivities())
     simulate_kwargs.setdefault("stepsize_controller",
                                diffrax.PIDController(rtol=1e-10, atol=1e-10))
     spec = _ParamSpec(tuple(params), tuple(jnp.shape(v) for v in params.values()))

@@ -1,24 +1,29 @@
-r"""Reverse-mode derivatives of a simulation computed by forward sensitivities.
+r"""Reverse-mode derivatives of a simulation: forward sensitivities where they pay.
 
 For a loss of a trajectory in a few parameters θ (k scalars) forward-mode differentiation costs
-about ``1 + 0.4 k`` forward passes, while diffrax's checkpointed reverse mode costs 6–8 (measured
-in ``benchmarks/``). :class:`ForwardSensitivities`, passed as ``adjoint=`` to
-:func:`~jaxlag.simulate`, gives ``jax.grad``/``jax.vjp`` that price:
+about ``1 + 0.43 k`` forward passes, while diffrax's checkpointed reverse mode costs 5.5–7.5
+whatever k is (measured in ``benchmarks/``). :class:`ForwardSensitivities`, the default adjoint of
+:func:`~jaxlag.simulate`, makes ``jax.grad``/``jax.vjp`` pick the cheaper one while tracing:
 
-* on the forward pass of a reverse-mode derivative (``custom_vjp`` with symbolic zeros), the
-  simulation is pushed forward (``jax.jvp``, diffrax's ``ForwardMode``) along the k unit
-  directions of the inputs that are actually differentiated — the "perturbed" ones: ``args``
-  leaves, ``q0``, ``qd0``, times — all k at once under ``jax.vmap``; the sensitivities
-  ``S = ∂(outputs)/∂θ`` (k per output entry) are kept;
-* the backward pass is one contraction, ``θ̄ = Sᵀ ȳ``.
+* the simulation is a ``custom_vjp`` with symbolic zeros, so its forward rule knows which inputs
+  are actually differentiated (``args`` leaves, ``q0``, ``qd0``, times: the "perturbed" ones)
+  and how many scalars k they hold;
+* k ≤ ``max_tangents`` (and the sensitivities fit in ``max_bytes``): the simulation is pushed
+  forward (``jax.jvp`` through diffrax's ``ForwardMode``) along the k unit directions at once
+  under ``jax.vmap``; the sensitivities ``S = ∂(outputs)/∂θ`` are kept and the backward pass is
+  one contraction ``θ̄ = Sᵀȳ``. Memory: k times the saved outputs, not the solver's steps;
+* otherwise the ordinary reverse pass of the ``fallback`` adjoint (diffrax's
+  ``RecursiveCheckpointAdjoint``) is recorded and replayed.
 
-Memory is k times the saved outputs (not the solver's steps). Inputs that are not differentiated
-cost nothing, so ``jax.grad(loss)(g)`` with fixed initial states has k = 1.
+Both differentiate the same discrete solver, so the gradients agree to rounding (≤ 5e-13
+relative measured). A user function that closes over a value being differentiated (``L``
+capturing ``g`` from the caller's ``jax.grad``) is invisible to a ``custom_vjp``; ``simulate``
+detects traced constants in the jaxpr of the simulation and then differentiates with the
+``fallback`` adjoint directly (pass such parameters through ``args`` to get the fast path).
 
-Limits: first-order reverse mode only (``jax.grad``, ``jax.vjp``, ``jax.value_and_grad``, also
-under ``jit``/``vmap``). For ``jax.jacfwd``/``jax.jvp`` pass ``diffrax.ForwardMode()`` instead
-(a ``custom_vjp`` cannot be pushed forward). With many differentiated inputs (a long vector of
-parameters) the default ``RecursiveCheckpointAdjoint`` is cheaper: its cost does not grow with k.
+Like the checkpointed adjoint it replaces, this is first-order reverse mode (``jax.grad``,
+``jax.vjp``, ``jax.value_and_grad``, under ``jit``/``vmap``); for ``jax.jacfwd`` or ``jax.jvp``
+pass ``adjoint=diffrax.ForwardMode()``.
 """
 
 from __future__ import annotations
@@ -35,17 +40,19 @@ from jax.custom_derivatives import SymbolicZero
 
 
 class ForwardSensitivities(eqx.Module):
-    """``adjoint=`` for :func:`~jaxlag.simulate`: ``jax.grad`` by forward sensitivities.
+    """Default ``adjoint=`` of :func:`~jaxlag.simulate`: forward sensitivities for few inputs.
 
-    Cheaper than the default checkpointed adjoint when few inputs are differentiated (k ≲ 10);
-    see :mod:`jaxlag.sensitivities`. ``inner`` is the diffrax adjoint used to push the
-    simulation forward (``diffrax.ForwardMode()``). Differentiating more than ``max_tangents``
-    scalars at once (the weights of a neural Lagrangian, say) raises an error that points to the
-    default adjoint, instead of building a ``k × k`` basis.
+    ``jax.grad`` uses forward sensitivities when at most ``max_tangents`` scalars are
+    differentiated and ``k ×`` (the saved outputs) is at most ``max_bytes``; otherwise the
+    ``fallback`` adjoint's reverse pass. ``inner`` pushes the tangents (``diffrax.ForwardMode()``).
+    The default ``max_tangents = 10`` is the measured crossover (k ≈ 11–14 for a double pendulum).
+    See :mod:`jaxlag.sensitivities`.
     """
 
+    max_tangents: int = eqx.field(static=True, default=10)
+    max_bytes: int = eqx.field(static=True, default=2**27)
     inner: diffrax.AbstractAdjoint = diffrax.ForwardMode()
-    max_tangents: int = eqx.field(static=True, default=256)
+    fallback: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint()
 
 
 def _is_symbolic_zero(x) -> bool:
@@ -62,29 +69,45 @@ def _split_inexact(tree):
     return eqx.partition(tree, eqx.is_inexact_array)
 
 
-def call_with_forward_sensitivities(run: Callable[[Any], Any], inputs: Any,
-                                    max_tangents: int = 256) -> Any:
-    """``run(inputs)``, whose reverse-mode derivative is computed from forward sensitivities.
+def closes_over_traced_values(run: Callable[[Any, Any], Any], inputs: Any, adjoint) -> bool:
+    """Whether ``run(inputs, adjoint)`` captures traced values other than its inputs.
+
+    ``run`` is traced abstractly (``jax.make_jaxpr``, the inputs' arrays replaced by their shapes)
+    and the constants of the jaxpr are inspected: a closed-over parameter of an enclosing
+    ``grad``/``jit``/``vmap`` shows up there as a tracer. Anything that prevents the analysis
+    counts as "yes" (the caller then takes the general path).
+    """
+    dynamic, static = eqx.partition(inputs, eqx.is_array)
+    try:
+        spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)),
+                            dynamic)
+        closed = jax.make_jaxpr(lambda d: run(eqx.combine(d, static), adjoint))(spec)
+    except Exception:  # noqa: BLE001 - conservative: the general path is always correct
+        return True
+    return any(isinstance(c, jax.core.Tracer) for c in closed.consts)
+
+
+def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
+                                    choice: ForwardSensitivities) -> Any:
+    """``run(inputs, adjoint)``, reverse-differentiated as :class:`ForwardSensitivities` says.
 
     ``inputs`` is any pytree; its floating-point array leaves are the differentiable inputs.
-    ``run`` must be differentiable in forward mode (``jax.jvp``).
+    ``run(inputs, choice.inner)`` must be differentiable in forward mode and
+    ``run(inputs, choice.fallback)`` in reverse mode.
     """
     dynamic, static = _split_inexact(inputs)
-
-    def evaluate(values):
-        out = run(eqx.combine(values, static))
-        inexact, rest = _split_inexact(out)
-        return inexact, rest
-
     shapes = [(jnp.shape(x), jnp.result_type(x)) for x in jax.tree.leaves(dynamic)]
     structure = jax.tree.structure(dynamic)
-    # Which leaves are differentiated is known while tracing the forward pass; the backward
-    # pass of the same trace reads it here (residuals must be arrays).
-    perturbed_sizes: list[int] = []
+    # What the forward rule decided while tracing, read by the backward rule of the same trace
+    # (residuals must be arrays): the size of each perturbed leaf, the output structure.
+    decided: dict[str, Any] = {}
+
+    def evaluate(values, adjoint):
+        return _split_inexact(run(eqx.combine(values, static), adjoint))
 
     @jax.custom_vjp
     def call(values):
-        inexact, rest = evaluate(values)
+        inexact, rest = evaluate(values, choice.fallback)
         return eqx.combine(inexact, rest)
 
     def forward(values):
@@ -92,18 +115,17 @@ def call_with_forward_sensitivities(run: Callable[[Any], Any], inputs: Any,
         primals = jax.tree.unflatten(structure, [leaf.value for leaf in leaves])
         sizes = [math.prod(shape) if leaf.perturbed else 0
                  for leaf, (shape, _) in zip(leaves, shapes)]
-        perturbed_sizes[:] = sizes
         k = sum(sizes)
-        if k > max_tangents:
-            raise ValueError(
-                f"jl.ForwardSensitivities: {k} differentiated scalars would each need a tangent "
-                f"(limit max_tangents={max_tangents}). For many parameters use the default "
-                "adjoint (diffrax.RecursiveCheckpointAdjoint), whose cost does not grow with "
-                "their number."
-            )
+        out_shape, _ = jax.eval_shape(lambda v: evaluate(v, choice.inner), primals)
+        out_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(out_shape))
+        decided.update(sizes=sizes, outputs=jax.tree.structure(out_shape))
         if k == 0:
-            inexact, rest = evaluate(primals)
-            return eqx.combine(inexact, rest), None
+            inexact, rest = evaluate(primals, choice.inner)
+            return eqx.combine(inexact, rest), (None, None)
+        if k > choice.max_tangents or k * out_bytes > choice.max_bytes:
+            inexact, pullback, rest = jax.vjp(lambda v: evaluate(v, choice.fallback), primals,
+                                              has_aux=True)
+            return eqx.combine(inexact, rest), (None, pullback)
 
         def push(direction):
             tangents, offset = [], 0
@@ -113,31 +135,35 @@ def call_with_forward_sensitivities(run: Callable[[Any], Any], inputs: Any,
                     offset += size
                 else:
                     tangents.append(jnp.zeros(shape, dtype))
-            return jax.jvp(evaluate, (primals,), (jax.tree.unflatten(structure, tangents),),
-                           has_aux=True)
+            return jax.jvp(lambda v: evaluate(v, choice.inner), (primals,),
+                           (jax.tree.unflatten(structure, tangents),), has_aux=True)
 
         dtype = jnp.result_type(*[d for (_, d), size in zip(shapes, sizes) if size])
         inexact, sensitivities, rest = jax.vmap(push, out_axes=(None, 0, None))(
             jnp.eye(k, dtype=dtype)
         )
-        return eqx.combine(inexact, rest), sensitivities
+        return eqx.combine(inexact, rest), (sensitivities, None)
 
-    def backward(sensitivities, cotangent):
-        sizes = perturbed_sizes
-        if sensitivities is None:
-            return (jax.tree.unflatten(structure, [jnp.zeros(sh, dt) for sh, dt in shapes]),)
-        # Cotangents of the inexact outputs, in the order of the sensitivities' leaves (integer
-        # outputs have float0 cotangents, symbolic or not, and are skipped).
+    def backward(residuals, cotangent):
+        sensitivities, pullback = residuals
+        # Cotangents of the floating-point outputs in output order (integer outputs have float0
+        # cotangents, symbolic or not, and are skipped).
         cotangents = [c for c in jax.tree.leaves(cotangent, is_leaf=_is_symbolic_zero)
                       if _inexact_cotangent(c)]
+        if pullback is not None:
+            dense = [jnp.zeros(c.aval.shape, c.aval.dtype) if _is_symbolic_zero(c) else c
+                     for c in cotangents]
+            (grads,) = pullback(jax.tree.unflatten(decided["outputs"], dense))
+            return (grads,)
         total = None
-        for s, c in zip(jax.tree.leaves(sensitivities), cotangents, strict=True):
-            if _is_symbolic_zero(c):
-                continue
-            term = jnp.tensordot(s, c.astype(s.dtype), axes=c.ndim)
-            total = term if total is None else total + term
+        if sensitivities is not None:
+            for s, c in zip(jax.tree.leaves(sensitivities), cotangents, strict=True):
+                if _is_symbolic_zero(c):
+                    continue
+                term = jnp.tensordot(s, c.astype(s.dtype), axes=c.ndim)
+                total = term if total is None else total + term
         grads, offset = [], 0
-        for (shape, dtype), size in zip(shapes, sizes):
+        for (shape, dtype), size in zip(shapes, decided["sizes"]):
             if size and total is not None:
                 grads.append(total[offset:offset + size].reshape(shape).astype(dtype))
             else:

@@ -17,7 +17,11 @@ from .conventions import as_float_state
 from .events import Event, default_root_finder, solve_segments
 from .kkt import accelerations_and_multipliers
 from .mechanics import unconstrained_accelerations
-from .sensitivities import ForwardSensitivities, call_with_forward_sensitivities
+from .sensitivities import (
+    ForwardSensitivities,
+    call_with_forward_sensitivities,
+    closes_over_traced_values,
+)
 from .stabilization import Baumgarte, Projection, wrap_for_projection
 from .system import System
 from .trajectory import Trajectory
@@ -103,7 +107,7 @@ def simulate(
     dt0=None,
     saveat: diffrax.SaveAt | None = None,
     max_steps: int | None = 2**16,
-    adjoint: diffrax.AbstractAdjoint | None = None,
+    adjoint: diffrax.AbstractAdjoint | ForwardSensitivities | None = None,
     event: diffrax.Event | None = None,
     throw: bool = True,
     progress_meter: diffrax.AbstractProgressMeter | None = None,
@@ -128,9 +132,10 @@ def simulate(
     Every diffrax option passes through unchanged: ``solver`` (default ``diffrax.Tsit5()``),
     ``stepsize_controller`` (default ``diffrax.PIDController(rtol=1e-10, atol=1e-10)``; with a
     ``ConstantStepSize`` give ``dt0``), ``dt0`` (default: chosen by the controller), ``saveat``,
-    ``max_steps``, ``adjoint`` (default ``RecursiveCheckpointAdjoint``), ``event``, ``throw`` and
-    ``progress_meter``. ``adjoint=jl.ForwardSensitivities()`` makes ``jax.grad`` cost about as
-    much as forward mode when few inputs are differentiated (:mod:`jaxlag.sensitivities`).
+    ``max_steps``, ``adjoint``, ``event``, ``throw`` and ``progress_meter``. The default adjoint,
+    :class:`~jaxlag.ForwardSensitivities`, gives ``jax.grad`` by forward sensitivities when at most
+    10 scalars are differentiated and by diffrax's ``RecursiveCheckpointAdjoint`` otherwise
+    (:mod:`jaxlag.sensitivities`); for ``jax.jacfwd`` pass ``diffrax.ForwardMode()``.
 
     Constrained systems:
 
@@ -177,7 +182,7 @@ def simulate(
     if stepsize_controller is None:
         stepsize_controller = diffrax.PIDController(rtol=1e-10, atol=1e-10)
     if adjoint is None:
-        adjoint = diffrax.RecursiveCheckpointAdjoint()
+        adjoint = ForwardSensitivities()
     if not isinstance(adjoint, (diffrax.AbstractAdjoint, ForwardSensitivities)):
         raise TypeError(
             f"adjoint must be a diffrax adjoint or jl.ForwardSensitivities(); got {adjoint!r}."
@@ -210,12 +215,10 @@ def simulate(
         check_in_jit = False
     if segmented and event_root_finder is None:
         event_root_finder = default_root_finder()
-    sensitivities = adjoint if isinstance(adjoint, ForwardSensitivities) else None
-    if sensitivities is not None:
-        adjoint = sensitivities.inner
 
-    def run(inputs):
-        system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller = inputs
+    def run(inputs, adjoint):
+        (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller, baumgarte,
+         projection, events, event) = inputs
         if segmented:
             ts_out, q, qd, active, log = solve_segments(
                 system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_controller, max_steps,
@@ -229,7 +232,13 @@ def simulate(
             constraint_tolerance,
         )
 
-    inputs = (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller)
-    if sensitivities is not None:
-        return call_with_forward_sensitivities(run, inputs, sensitivities.max_tangents)
-    return run(inputs)
+    inputs = (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller,
+              baumgarte, projection, events, event)
+    if isinstance(adjoint, ForwardSensitivities):
+        # Nothing traced: nothing to differentiate. A user function closing over a traced value
+        # (a parameter of the caller's grad captured in L): a custom_vjp cannot see it, so the
+        # checkpointed adjoint differentiates the simulation as it stands.
+        if _is_concrete(inputs) or closes_over_traced_values(run, inputs, adjoint.fallback):
+            return run(inputs, adjoint.fallback)
+        return call_with_forward_sensitivities(run, inputs, adjoint)
+    return run(inputs, adjoint)
