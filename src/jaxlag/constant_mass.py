@@ -29,7 +29,7 @@ import numpy as np
 from .checks import MASS_RCOND
 from .dependence import may_depend
 from .linalg import solve_spd
-from .mechanics import mass_matrix
+from .mechanics import mass_along, mass_matrix
 
 
 class ConstantMass(eqx.Module):
@@ -52,13 +52,9 @@ class ConstantMass(eqx.Module):
 
 
 def _mass(q, qd, t, args, system):
-    """``M(q, q̇, t)`` with a plain identity basis (kept traceable for the analysis)."""
-
-    def momentum(v):
-        return jax.grad(lambda b: system.lagrangian(q, b, t=t, args=args))(v)
-
-    basis = jnp.eye(q.shape[0], dtype=qd.dtype)
-    return jax.vmap(lambda e: jax.jvp(momentum, (qd,), (e,))[1])(basis)
+    """``M(q, q̇, t)`` with a plain identity basis: the hot path's basis is built from ``q̇`` (so
+    XLA cannot hoist it), which would make every ``M`` look velocity-dependent here."""
+    return mass_along(system, q, qd, t, args, jnp.eye(q.shape[0], dtype=qd.dtype))
 
 
 def mass_dependence(system, q, qd, t, args):

@@ -70,12 +70,17 @@ def lagrangian_terms(system, q, qd, t, args):
     if system.constant_mass is not None:
         return p, system.constant_mass.matrix, dL_dq - dp_motion
 
+    return p, mass_along(system, q, qd, t, args, _unit_basis(qd)), dL_dq - dp_motion
+
+
+def mass_along(system, q, qd, t, args, basis):
+    """Rows ``(∂p/∂q̇) e`` for each row ``e`` of ``basis`` (``M`` itself for the identity, as
+    ``M`` is symmetric): ``jvp``s of ``p`` in ``q̇`` alone, with ``t`` already an array."""
+
     def momentum(v):
         return jax.grad(lambda b: system.lagrangian(q, b, t=t, args=args))(v)
 
-    # Row i is ∂p/∂q̇_i; M is symmetric, so this is M itself.
-    mass = jax.vmap(lambda e: jax.jvp(momentum, (qd,), (e,))[1])(_unit_basis(qd))
-    return p, mass, dL_dq - dp_motion
+    return jax.vmap(lambda e: jax.jvp(momentum, (qd,), (e,))[1])(basis)
 
 
 def nonconservative_forces(system, q, qd, t, args):
@@ -92,12 +97,7 @@ def mass_matrix(system, q, qd, t=0.0, args=None):
     """``M = ∂²L/∂q̇²``, shape (n, n)."""
     if system.constant_mass is not None:
         return jnp.asarray(system.constant_mass.matrix, dtype=q.dtype)
-    t = _as_time(t, q)
-
-    def momentum(v):
-        return jax.grad(lambda b: system.lagrangian(q, b, t=t, args=args))(v)
-
-    return jax.vmap(lambda e: jax.jvp(momentum, (qd,), (e,))[1])(_unit_basis(qd))
+    return mass_along(system, q, qd, _as_time(t, q), args, _unit_basis(qd))
 
 
 def mass_and_forces(system, q, qd, t, args):

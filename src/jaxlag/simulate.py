@@ -53,7 +53,7 @@ class EquationsOfMotion(eqx.Module):
 def _as_time(t, dtype):
     """A time as a 0-d array; concrete values stay on the host (NumPy) until the compiled call,
     which transfers them with the other inputs instead of one eager device operation each."""
-    if isinstance(t, jax.core.Tracer) or isinstance(t, jax.Array):
+    if isinstance(t, jax.Array):  # also every tracer
         return jnp.asarray(t, dtype=dtype)
     return np.asarray(t, dtype=dtype)
 
