@@ -43,12 +43,14 @@ def test_non_finite_initial_state():
 
 def test_checks_still_fire_under_jit_and_vmap():
     run = jax.jit(lambda q0: jl.simulate(jl.System(oscillator), q0, jnp.zeros(1), TS).q)
+    # Errors from compiled programs surface when the result is waited on (on GPU, after the
+    # call has returned): block, as a user reading the result would.
     with pytest.raises(Exception, match="not finite"):
-        run(jnp.array([jnp.inf]))
+        jax.block_until_ready(run(jnp.array([jnp.inf])))
     degenerate = jl.System(lambda q, qd: 0.5 * qd[0] ** 2 - 0.5 * jnp.sum(q**2))
     batched = jax.vmap(lambda q0: jl.simulate(degenerate, q0, jnp.zeros(2), TS).q)
     with pytest.raises(Exception, match="singular or not positive definite"):
-        batched(jnp.ones((3, 2)))
+        jax.block_until_ready(batched(jnp.ones((3, 2))))
 
 
 def test_time_grid_must_increase():

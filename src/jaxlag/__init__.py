@@ -9,6 +9,7 @@ from . import analysis, coordinates, systems
 from .batch import batch_sharding, simulate_batch
 from .conventions import UserFunction
 from .events import Event, EventLog, multiplier_limit
+from .failures import SimulationError
 from .fit import Bounded, Experiment, FitResult, Positive, fit, least_squares_loss
 from .kkt import solve_kkt
 from .sensitivities import ForwardSensitivities
@@ -35,6 +36,7 @@ __all__ = [
     "Positive",
     "ProjectedSolver",
     "Projection",
+    "SimulationError",
     "System",
     "Trajectory",
     "UserFunction",

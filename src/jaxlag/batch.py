@@ -31,6 +31,7 @@ device of every host.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from typing import Any
 
@@ -40,6 +41,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from . import failures
+from .checks import _is_concrete
 from .conventions import as_array_leaves, as_float_state
 from .simulate import simulate
 from .system import System
@@ -251,11 +254,33 @@ def simulate_batch(
         if ts is not None:
             ts = place_shared(ts)
 
-    out = _run_batch(
-        system, q0, qd0, ts, batched_args, shared_args,
-        0 if q0.ndim == 2 else None, 0 if qd0.ndim == 2 else None,
-        simulate_kwargs, out_sharding,
-    )
+    # Members fail on their own (traj.failure per member); the batch raises once, below, naming
+    # the failed members, or not at all with throw=False.
+    throw = simulate_kwargs.pop("throw", True)
+    concrete = _is_concrete((q0, qd0, ts, batched_args, shared_args))
+    with failures.plain_errors() if concrete else contextlib.nullcontext():
+        out = _run_batch(
+            system, q0, qd0, ts, batched_args, shared_args,
+            0 if q0.ndim == 2 else None, 0 if qd0.ndim == 2 else None,
+            {**simulate_kwargs, "throw": False}, out_sharding,
+        )
+        if concrete:  # the compiled initial-state checks raise while we wait for the result
+            jax.block_until_ready(out.failure.code)
     if pad:
         out = jax.tree.map(lambda x: x[:size] if isinstance(x, jax.Array) else x, out)
+    if throw and out.failure is not None:
+        if _is_concrete(out.failure):
+            member_args = _member_args(batched_args, shared_args)
+            failures.raise_if_failed(out.failure, system, member_args, args_batched=True)
+        else:
+            out = eqx.tree_at(lambda tr: tr.q, out, failures.error_if_failed(out.failure, out.q))
     return out
+
+
+def _member_args(batched_args, shared_args):
+    """Host args with a leading batch axis on the batched leaves and size 1 on the shared ones
+    (the layout :func:`jaxlag.failures.member` indexes)."""
+    batched = jax.tree.map(np.asarray, batched_args)
+    shared = jax.tree.map(lambda x: np.asarray(x)[None] if eqx.is_array_like(x) else x,
+                          shared_args)
+    return eqx.combine(batched, shared)

@@ -8,6 +8,8 @@ still stops the computation.
 
 from __future__ import annotations
 
+import functools as ft
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -17,11 +19,31 @@ from . import constraints as _constraints
 from .kkt import accelerations_and_multipliers
 from .mechanics import mass_matrix
 
-#: A mass matrix whose smallest eigenvalue is below this fraction of its largest is singular.
+#: A mass matrix whose smallest eigenvalue is below this fraction of its largest is singular
+#: (float64; lower precisions use ``rcond(dtype)``).
 MASS_RCOND = 1e-12
 #: Constraint rows whose smallest singular value is below this fraction of the largest are
 #: linearly dependent (redundant or conflicting constraints).
 CONSTRAINT_RCOND = 1e-10
+
+
+def rcond(value: float, dtype) -> float:
+    """A float64 rank threshold scaled to ``dtype``: at least 100 ulps (1.2e-5 in float32)."""
+    return max(value, 100 * float(jnp.finfo(dtype).eps))
+
+
+def default_constraint_tolerance(dtype) -> float:
+    """``|f|, |ḟ|, |g|`` accepted at the initial state: 1e-8 in float64; in lower precision
+    ``√ε`` of the dtype (3.5e-4 in float32), where round-off of ``f`` alone is ~1e-7·|q|²."""
+    eps = float(jnp.finfo(dtype).eps)
+    return 1e-8 if eps <= float(jnp.finfo(jnp.float64).eps) else eps ** 0.5
+
+
+def default_solver_tolerance(dtype) -> float:
+    """``rtol = atol`` of the default ``PIDController``: 1e-10 in float64, 100 ulps otherwise
+    (1.2e-5 in float32: tighter tolerances than round-off stall the step-size control)."""
+    eps = float(jnp.finfo(dtype).eps)
+    return 1e-10 if eps <= float(jnp.finfo(jnp.float64).eps) else 100 * eps
 
 
 def _is_concrete(tree) -> bool:
@@ -69,10 +91,14 @@ def _diagnostic_values(system, q, qd, t, args, tolerance):
         wrong_sign = jnp.asarray(False)
     off_diagonal = mass - jnp.diag(jnp.diagonal(mass))
     not_diagonal = system.diagonal_mass & ~(
-        jnp.max(jnp.abs(off_diagonal)) <= 1e-12 * jnp.max(jnp.abs(mass))
+        jnp.max(jnp.abs(off_diagonal)) <= rcond(1e-12, q.dtype) * jnp.max(jnp.abs(mass))
     )
+    parameters = [jnp.all(jnp.isfinite(x)) for x in _inexact_leaves(args)]
     return dict(
         finite=jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(qd)),
+        args_finite=jnp.stack(parameters) if parameters else jnp.ones((0,), bool),
+        constraints_finite=jnp.all(jnp.isfinite(f)) & jnp.all(jnp.isfinite(f_dot))
+        & jnp.all(jnp.isfinite(g)),
         not_diagonal=not_diagonal,
         mass=mass,
         eigenvalues=eigenvalues,
@@ -88,16 +114,32 @@ def _diagnostic_values(system, q, qd, t, args, tolerance):
     )
 
 
+def _is_inexact(x) -> bool:
+    return (isinstance(x, (jax.Array, np.ndarray, np.generic, float, complex))
+            and jnp.issubdtype(jnp.result_type(x), jnp.inexact))
+
+
+def _inexact_leaves(tree):
+    return [x for x in jax.tree.leaves(tree) if _is_inexact(x)]
+
+
+def _inexact_names(tree) -> list[str]:
+    return [f"args{jax.tree_util.keystr(path)}" for path, x in
+            jax.tree_util.tree_leaves_with_path(tree) if _is_inexact(x)]
+
+
 def _failures(d, least_squares: bool, tolerance: float):
     eig = d["eigenvalues"]
     sv = d["singular_values"]
     residual = jnp.concatenate([jnp.abs(d["f"]), jnp.abs(d["f_dot"]), jnp.abs(d["g"]),
                                 jnp.zeros((1,), eig.dtype)])
-    rank = jnp.sum(sv > CONSTRAINT_RCOND * sv[0])
+    rank = jnp.sum(sv > rcond(CONSTRAINT_RCOND, sv.dtype) * sv[0])
     return dict(
         nonfinite=~d["finite"],
+        nonfinite_args=~jnp.all(d["args_finite"]),
+        nonfinite_constraints=~d["constraints_finite"],
         not_diagonal=d["not_diagonal"],
-        mass=~(eig[0] > MASS_RCOND * jnp.max(jnp.abs(eig))),
+        mass=~(eig[0] > rcond(MASS_RCOND, eig.dtype) * jnp.max(jnp.abs(eig))),
         rank=jnp.asarray(False)
         if least_squares or d["rows"].shape[0] == 0
         else rank < d["num_active"],
@@ -113,7 +155,7 @@ def _dependent_rows(rows: np.ndarray, m_h: int) -> list[str]:
     for i in range(rows.shape[0]):
         candidate = np.array(kept + [rows[i]])
         sv = np.linalg.svd(candidate, compute_uv=False)
-        rank = int(np.sum(sv > CONSTRAINT_RCOND * max(sv[0], 1e-300)))
+        rank = int(np.sum(sv > rcond(CONSTRAINT_RCOND, rows.dtype) * max(sv[0], 1e-300)))
         if rank == candidate.shape[0]:
             kept.append(rows[i])
         else:
@@ -128,88 +170,117 @@ _POINTER = (
 )
 
 
-def validate_initial_state(system, q, qd, t, args, tolerance: float):
-    """Check the initial state; return ``(q, qd)`` (threaded through the run-time checks)."""
+def _tolerance_text(tolerance: float, dtype) -> str:
+    text = f"{tolerance:g}"
+    if np.dtype(dtype) != np.float64:
+        text += (f" (the state is {np.dtype(dtype).name}: jax_enable_x64 is off; enable it with "
+                 "jax.config.update('jax_enable_x64', True), or pass a constraint_tolerance "
+                 "suited to single precision)")
+    return text
+
+
+class _Static(eqx.Module):
+    """What the message needs besides the numbers (hashable: closed over by the callback)."""
+
+    unilateral: tuple = eqx.field(static=True)
+    tolerance: float = eqx.field(static=True)
+    arg_names: tuple = eqx.field(static=True)
+
+
+def _initial_message(d, fail, static: _Static) -> str | None:
+    """The message for one member's host diagnostics, or None (shared by both paths)."""
+    if not any(bool(x) for x in fail.values()):
+        return None
+    if bool(fail["nonfinite"]):
+        return f"The initial state is not finite: q0={np.asarray(d['q'])}, qd0={np.asarray(d['qd'])}."
+    if bool(fail["nonfinite_args"]):
+        bad = [name for name, ok in zip(static.arg_names, np.asarray(d["args_finite"])) if not ok]
+        return (f"A parameter in args is not finite (NaN or inf): {', '.join(bad)}. Every "
+                "floating-point leaf of args must be finite.")
+    if bool(fail["mass"]):
+        return (
+            "The mass matrix M = ∂²L/∂q̇² is singular or not positive definite at the initial "
+            f"state (eigenvalues {np.asarray(d['eigenvalues'])}). The Lagrangian is degenerate: "
+            "every coordinate needs a kinetic term with a positive coefficient."
+        )
+    if bool(fail["nonfinite_constraints"]):
+        return (
+            "The constraint functions are not finite at the initial state: f(q0) = "
+            f"{np.asarray(d['f_raw'])}, ḟ = {np.asarray(d['f_dot'])}, g = {np.asarray(d['g'])} "
+            f"(q0 = {np.asarray(d['q'])})."
+        )
+    if bool(fail["not_diagonal"]):
+        return (
+            "The system declares diagonal_mass=True, but M = ∂²L/∂q̇² has off-diagonal "
+            f"entries at the initial state:\n{np.asarray(d['mass'])}"
+        )
+    if bool(fail["rank"]):
+        m_h = d["f"].shape[0]
+        names = _dependent_rows(np.asarray(d["rows"]), m_h)
+        return (
+            "The constraints are redundant or conflicting at the initial state: the constraint "
+            f"Jacobian [J; A] (singular values {np.asarray(d['singular_values'])}) is rank "
+            f"deficient; dependent rows: {', '.join(names)}. Remove them, or pass "
+            "least_squares=True to jl.System to accept consistent redundant constraints "
+            "(minimum-norm multipliers)."
+        )
+    if bool(fail["violated"]):
+        return (
+            f"A unilateral constraint is violated at the initial state (f_i < 0): f(q0) = "
+            f"{np.asarray(d['f_raw'])}, unilateral indices {static.unilateral}. One-sided "
+            "constraints are written f_i(q, t) >= 0."
+        )
+    if bool(fail["off_manifold"]):
+        return (
+            "The initial state is off the constraint manifold beyond the tolerance "
+            f"{_tolerance_text(static.tolerance, np.asarray(d['q']).dtype)}: f(q0) = "
+            f"{np.asarray(d['f'])}, ḟ = J q̇0 + ∂f/∂t = {np.asarray(d['f_dot'])}, velocity "
+            f"constraints g = {np.asarray(d['g'])}. " + _POINTER
+        )
+    if bool(fail["wrong_sign"]):
+        return (
+            "A unilateral constraint in contact at t0 has a multiplier of the wrong sign: it "
+            "would have to pull (λ_i < 0) to hold, so it cannot be in contact. Start the motion "
+            f"off the constraint (f_i > 0) instead. f(q0) = {np.asarray(d['f_raw'])}."
+        )
+    return None
+
+
+def _batched_initial_message(static: _Static, payload) -> str | None:
+    """:func:`_initial_message` for the first failed member of a (possibly batched) payload."""
+    from .failures import batch_prefix, failed_members, member
+
+    d, fail = payload
+    flags = ft.reduce(np.logical_or, [np.asarray(x) for x in fail.values()])
+    members = failed_members(flags)
+    if not members:
+        return None
+    index = members[0]
+    text = _initial_message(*member((d, fail), index), static)
+    return batch_prefix(index, flags, members) + (text or "")
+
+
+def validate_initial_state(system, q, qd, t, args, tolerance: float | None):
+    """Check the initial state; return ``(q, qd)`` (threaded through the run-time checks).
+
+    Concrete inputs raise ``ValueError`` here; traced ones compile the check into the program
+    (:func:`jaxlag.failures.raise_from_program`), which raises the same message with the numbers
+    (for the first failing member of a batch) when the program runs."""
+    from .failures import Report, raise_from_program
+
+    if tolerance is None:
+        tolerance = default_constraint_tolerance(jnp.result_type(q))
     d, fail = _diagnostics(system, q, qd, t, args, tolerance)
+    d = dict(d, q=q, qd=qd)
+    static = _Static(tuple(system.unilateral), float(tolerance), tuple(_inexact_names(args)))
     # Concrete inputs can still give traced flags: a user function may close over a traced value.
     if _is_concrete((q, qd, t, args, fail)):
-        fail = jax.device_get(fail)  # one transfer; the values are fetched only to report
-        if not any(bool(x) for x in fail.values()):
-            return q, qd
-        if bool(fail["nonfinite"]):
-            raise ValueError(f"The initial state is not finite: q0={np.asarray(q)}, qd0={np.asarray(qd)}.")
-        if bool(fail["mass"]):
-            raise ValueError(
-                "The mass matrix M = ∂²L/∂q̇² is singular or not positive definite at the initial "
-                f"state (eigenvalues {np.asarray(d['eigenvalues'])}). The Lagrangian is degenerate: "
-                "every coordinate needs a kinetic term with a positive coefficient."
-            )
-        if bool(fail["not_diagonal"]):
-            raise ValueError(
-                "The system declares diagonal_mass=True, but M = ∂²L/∂q̇² has off-diagonal "
-                f"entries at the initial state:\n{np.asarray(d['mass'])}"
-            )
-        if bool(fail["rank"]):
-            m_h = d["f"].shape[0]
-            names = _dependent_rows(np.asarray(d["rows"]), m_h)
-            raise ValueError(
-                "The constraints are redundant or conflicting at the initial state: the constraint "
-                f"Jacobian [J; A] (singular values {np.asarray(d['singular_values'])}) is rank "
-                f"deficient; dependent rows: {', '.join(names)}. Remove them, or pass "
-                "least_squares=True to jl.System to accept consistent redundant constraints "
-                "(minimum-norm multipliers)."
-            )
-        if bool(fail["violated"]):
-            raise ValueError(
-                f"A unilateral constraint is violated at the initial state (f_i < 0): f(q0) = "
-                f"{np.asarray(d['f_raw'])}, unilateral indices {system.unilateral}. One-sided "
-                "constraints are written f_i(q, t) >= 0."
-            )
-        if bool(fail["off_manifold"]):
-            raise ValueError(
-                "The initial state is off the constraint manifold beyond the tolerance "
-                f"{tolerance:g}: f(q0) = {np.asarray(d['f'])}, ḟ = J q̇0 + ∂f/∂t = "
-                f"{np.asarray(d['f_dot'])}, velocity constraints g = {np.asarray(d['g'])}. "
-                + _POINTER
-            )
-        if bool(fail["wrong_sign"]):
-            raise ValueError(
-                "A unilateral constraint in contact at t0 has a multiplier of the wrong sign: it "
-                "would have to pull (λ_i < 0) to hold, so it cannot be in contact. Start the motion "
-                f"off the constraint (f_i > 0) instead. f(q0) = {np.asarray(d['f_raw'])}."
-            )
+        host = jax.device_get((d, fail))  # one transfer; the values are fetched only to report
+        text = _initial_message(*host, static)
+        if text is not None:
+            raise ValueError(text)
         return q, qd
-    q = eqx.error_if(q, fail["nonfinite"], "jaxlag: the initial state is not finite.")
-    q = eqx.error_if(
-        q,
-        fail["mass"],
-        "jaxlag: the mass matrix M = ∂²L/∂q̇² is singular or not positive definite at the "
-        "initial state (degenerate Lagrangian).",
-    )
-    q = eqx.error_if(
-        q,
-        fail["not_diagonal"],
-        "jaxlag: the system declares diagonal_mass=True, but M has off-diagonal entries.",
-    )
-    q = eqx.error_if(
-        q,
-        fail["rank"],
-        "jaxlag: the constraints are redundant or conflicting at the initial state (rank-deficient "
-        "constraint Jacobian). Call simulate outside jit to see which rows, or pass "
-        "least_squares=True to jl.System.",
-    )
-    q = eqx.error_if(
-        q,
-        fail["off_manifold"],
-        "jaxlag: the initial state is off the constraint manifold beyond tolerance. " + _POINTER,
-    )
-    q = eqx.error_if(
-        q, fail["violated"], "jaxlag: a unilateral constraint is violated at the initial state."
-    )
-    q = eqx.error_if(
-        q,
-        fail["wrong_sign"],
-        "jaxlag: a unilateral constraint in contact at t0 has a multiplier of the wrong sign "
-        "(it would have to pull).",
-    )
+    failed = jnp.any(jnp.stack([jnp.asarray(x) for x in fail.values()]))
+    report = Report(ft.partial(_batched_initial_message, static), ValueError)
+    q = raise_from_program(q, failed, report, (d, fail))
     return q, qd

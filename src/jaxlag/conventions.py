@@ -89,7 +89,18 @@ class UserFunction(eqx.Module):
     role: str = eqx.field(static=True)
 
     def __call__(self, *state: Any, **available: Any) -> Any:
-        return self.fn(*state, **{name: available[name] for name in self.keywords})
+        keywords = {name: available[name] for name in self.keywords}
+        if "args" not in keywords or keywords["args"] is not None:
+            return self.fn(*state, **keywords)
+        try:
+            return self.fn(*state, **keywords)
+        except (TypeError, AttributeError, KeyError) as error:
+            # Runs while tracing only: no cost in the compiled program.
+            raise TypeError(
+                f"The {self.role} {self.fn!r} declares `args` and failed with args=None "
+                f"({type(error).__name__}: {error}). Pass the parameters it reads, e.g. "
+                "jl.simulate(system, q0, qd0, ts, args={...})."
+            ) from error
 
 
 def _wrap(fn, role, n_state, extra_names=_EXTRA_NAMES):

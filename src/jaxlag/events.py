@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
+from . import failures
 from .checks import initial_activity, validate_initial_state
 from .constant_mass import with_constant_mass
 from .constraints import holonomic_residual
@@ -151,7 +152,7 @@ def _first(mask):
 
 @eqx.filter_jit
 def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_controller,
-                   max_steps, adjoint, throw, progress_meter, baumgarte, projection, events,
+                   max_steps, adjoint, progress_meter, baumgarte, projection, events,
                    max_segments, root_finder, check, tolerance):
     """Integrate across releases, contacts and user events; see the module docstring."""
     from .simulate import EquationsOfMotion  # the vector field lives with simulate
@@ -174,7 +175,8 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
         return accelerations_and_multipliers(system, q, qd, t, args, active=active)[1]
 
     def run_segment(carry, _):
-        t_s, q, qd, active, done, locks, out_q, out_qd, out_active, filled, count = carry
+        (t_s, q, qd, active, done, locks, out_q, out_qd, out_active, filled, count,
+         failure) = carry
         segment = _Segment(system, tuple(events), unilateral, active, t_s, locks)
         this_solver = solver
         if projection is not None:
@@ -188,20 +190,30 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
             (q, qd),
             args,
             saveat=diffrax.SaveAt(
-                subs=[diffrax.SubSaveAt(ts=jnp.clip(ts, t_s, t1)), diffrax.SubSaveAt(t1=True)]
+                subs=[diffrax.SubSaveAt(ts=jnp.clip(ts, t_s, t1)), diffrax.SubSaveAt(t1=True)],
+                controller_state=True,
             ),
-            stepsize_controller=stepsize_controller,
+            stepsize_controller=failures.guard(stepsize_controller),
             adjoint=adjoint,
             event=segment.diffrax_event(root_finder),
             max_steps=max_steps,
-            throw=throw,
+            throw=False,  # recorded in `failure`; simulate raises (jaxlag.failures)
             progress_meter=progress_meter,
         )
         (saved_q, saved_qd), (final_q, final_qd) = solution.ys
         t_e = solution.ts[1][0]
         q_e, qd_e = final_q[0], final_qd[0]
+        this = failures.from_solution(solution, t_s, t1, q, qd, max_steps=max_steps,
+                                      max_segments=max_segments)
+        this = eqx.tree_at(lambda f: f.code, this, jnp.where(done, failures.NONE, this.code))
+        failure = failures.first_failure(failure, this)
+        # A failed segment ends the simulation: its end state is not a state of the motion.
+        broken = failure.code != failures.NONE
+        t_e = jnp.where(broken, t1, t_e)
+        q_e = jnp.where(broken, q, q_e)
+        qd_e = jnp.where(broken, qd, qd_e)
 
-        take = (ts >= t_s) & (ts <= t_e) & ~filled & ~done
+        take = (ts >= t_s) & (ts <= t_e) & ~filled & ~done & ~broken
         out_q = jnp.where(take[:, None], saved_q, out_q)
         out_qd = jnp.where(take[:, None], saved_qd, out_qd)
         out_active = jnp.where(take[:, None], active[None, :], out_active)
@@ -214,18 +226,19 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
         contacted = fired[1] if system.unilateral else jnp.asarray(False)
         user_fired = jnp.stack(fired[offset:]) if num_events else jnp.zeros((0,), bool)
 
-        # Which constraint switched: the one whose multiplier / gap is at its minimum.
-        lam_e = lam_of(q_e, qd_e, t_e, active)
-        f_e = holonomic_residual(system, q_e, t_e, args) if m_h else jnp.zeros((0,), dtype)
-        release_index = jnp.argmin(jnp.where(active & unilateral, lam_e, jnp.inf))
-        contact_index = jnp.argmin(jnp.where(~active & unilateral, f_e, jnp.inf))
         new_active = active
+        release_index = contact_index = jnp.asarray(0)
+        q_p, qd_p = q_e, qd_e
         if m_h:
+            # Which constraint switched: the one whose multiplier / gap is at its minimum.
+            lam_e = lam_of(q_e, qd_e, t_e, active)
+            f_e = holonomic_residual(system, q_e, t_e, args)
+            release_index = jnp.argmin(jnp.where(active & unilateral, lam_e, jnp.inf))
+            contact_index = jnp.argmin(jnp.where(~active & unilateral, f_e, jnp.inf))
             new_active = jnp.where(released, new_active.at[release_index].set(False), new_active)
             new_active = jnp.where(contacted, new_active.at[contact_index].set(True), new_active)
-        # Restore consistency with the new active set: at a contact this is the plastic impact.
-        q_p, qd_p = project_state(system, q_e, qd_e, t_e, args, 2, new_active, refresh_mass=True)
-        if m_h:
+            # Restore consistency with the new active set: at a contact, the plastic impact.
+            q_p, qd_p = project_state(system, q_e, qd_e, t_e, args, 2, new_active, refresh_mass=True)
             # A constraint that would have to pull right after engaging separates again.
             lam_p = lam_of(q_p, qd_p, t_e, new_active)
             pulls = contacted & (lam_p[contact_index] < 0)
@@ -254,22 +267,31 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
                           jnp.where(any_user, user_index, -1)))
         record = (jnp.where(done, jnp.inf, t_e), kind, index, q_next, qd_next, new_active)
         count = count + happened.astype(count.dtype)
-        done = done | reached_end | stop
+        done = done | reached_end | stop | broken
         t_next = jnp.where(done, t1, t_e)
         carry = (t_next, q_next, qd_next, new_active, done, new_locks, out_q, out_qd,
-                 out_active, filled, count)
+                 out_active, filled, count, failure)
         return carry, record
 
     inf = jnp.full((num_saves, n), jnp.inf, dtype)
+    none = failures.Failure(
+        code=jnp.asarray(failures.NONE, jnp.int32), t=jnp.asarray(t1, dtype),
+        dt=jnp.asarray(jnp.nan, dtype), q=q0, qd=qd0, t0=jnp.asarray(t0, dtype),
+        t1=jnp.asarray(t1, dtype), num_steps=jnp.asarray(0, jnp.int32),
+        result=jnp.asarray(0, jnp.int32), max_steps=max_steps, max_segments=max_segments,
+    )
     carry0 = (t0, q0, qd0, active0, jnp.asarray(False), jnp.zeros((num_events,), dtype), inf, inf,
               jnp.zeros((num_saves, m_h), bool), jnp.zeros((num_saves,), bool),
-              jnp.asarray(0, jnp.int32))
+              jnp.asarray(0, jnp.int32), none)
     carry, records = jax.lax.scan(run_segment, carry0, None, length=max_segments)
-    _, _, _, _, done, _, out_q, out_qd, out_active, _, count = carry
-    out_q = eqx.error_if(
-        out_q, ~done,
-        "jaxlag: the simulation needed more than max_segments segments (releases, contacts and "
-        "events); increase max_segments.",
+    t_last, q_last, qd_last, _, done, _, out_q, out_qd, out_active, _, count, failure = carry
+    out_of_segments = ~done & (failure.code == failures.NONE)
+    failure = eqx.tree_at(
+        lambda f: (f.code, f.t, f.q, f.qd), failure,
+        (jnp.where(out_of_segments, failures.MAX_SEGMENTS, failure.code),
+         jnp.where(out_of_segments, t_last, failure.t),
+         jnp.where(out_of_segments, q_last, failure.q),
+         jnp.where(out_of_segments, qd_last, failure.qd)),
     )
     if projection is not None:
         out_q, out_qd = jax.vmap(
@@ -281,7 +303,7 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
         out_qd = jnp.where(finite, out_qd, jnp.inf)
     time, kind, index, q_rec, qd_rec, active_rec = records
     log = EventLog(time, kind, index, q_rec, qd_rec, active_rec, count)
-    return ts, out_q, out_qd, out_active, log
+    return ts, out_q, out_qd, out_active, log, failure
 
 
 def default_root_finder():

@@ -10,7 +10,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .checks import _is_concrete, validate_initial_state
+from . import failures
+from .checks import (
+    _is_concrete,
+    default_constraint_tolerance,
+    default_solver_tolerance,
+    validate_initial_state,
+)
 from .conventions import as_array_leaves as _as_array_leaves
 from .constant_mass import with_constant_mass
 from .conventions import as_float_state
@@ -27,6 +33,22 @@ from .system import System
 from .trajectory import Trajectory
 
 _AUTO = "auto"
+
+
+def _save_times_message(ts) -> str | None:
+    """Why the (host, possibly batched) save times are unusable, or None."""
+    ts = np.asarray(ts)
+    flat = ts.reshape(-1, ts.shape[-1]) if ts.ndim else ts.reshape(1, 1)
+    for row in flat:
+        steps = np.diff(row)
+        if not np.all(steps > 0):
+            k = int(np.argmax(~(steps > 0)))
+            return (f"ts must be strictly increasing and finite; ts[{k}] = {row[k]:g} is followed "
+                    f"by ts[{k + 1}] = {row[k + 1]:g}.")
+    return None
+
+
+_SAVE_TIMES = failures.Report(_save_times_message, ValueError)
 
 
 class EquationsOfMotion(eqx.Module):
@@ -60,7 +82,7 @@ def _as_time(t, dtype):
 
 @eqx.filter_jit
 def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat, max_steps,
-           adjoint, event, throw, progress_meter, baumgarte, projection, check, tolerance):
+           adjoint, event, progress_meter, baumgarte, projection, check, tolerance):
     system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation
     if check:
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
@@ -68,6 +90,8 @@ def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, save
     fast = with_constant_mass(system, q0, qd0, t0, args)
     if projection is not None:
         solver = wrap_for_projection(solver, fast, projection, adjoint)
+    # Failures are recorded (jaxlag.failures), not thrown by diffrax: simulate raises with the
+    # numbers and a diagnosis instead of "max_steps reached" after 65,536 rejected NaN steps.
     solution = diffrax.diffeqsolve(
         diffrax.ODETerm(EquationsOfMotion(fast, baumgarte)),
         solver,
@@ -76,20 +100,22 @@ def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, save
         dt0,
         (q0, qd0),
         args,
-        saveat=saveat,
-        stepsize_controller=stepsize_controller,
+        saveat=failures.saving_guard_state(saveat),
+        stepsize_controller=failures.guard(stepsize_controller),
         adjoint=adjoint,
         event=event,
         max_steps=max_steps,
-        throw=throw,
+        throw=False,
         progress_meter=progress_meter,
     )
     q, qd = solution.ys
     if projection is not None:
         # Saved values between steps come from the solver's interpolant: project them too.
         q, qd = jax.vmap(lambda t, x, v: projection(fast, x, v, t, args))(solution.ts, q, qd)
+    failure = failures.from_solution(solution, t0, t1, q0, qd0, solution.ts, q, qd, max_steps)
     return Trajectory.from_states(
-        system, solution.ts, q, qd, args, stats=solution.stats, result=solution.result
+        system, solution.ts, q, qd, args, stats=solution.stats, result=solution.result,
+        failure=failure,
     )
 
 
@@ -114,7 +140,7 @@ def simulate(
     baumgarte: Baumgarte | None = None,
     projection: Projection | None | str = _AUTO,
     check_initial_state: bool = True,
-    constraint_tolerance: float = 1e-8,
+    constraint_tolerance: float | None = None,
     events=(),
     max_segments: int = 8,
     event_root_finder=None,
@@ -130,7 +156,8 @@ def simulate(
     - ``args``: parameters (any pytree) passed to every user function that declares ``args``.
 
     Every diffrax option passes through unchanged: ``solver`` (default ``diffrax.Tsit5()``),
-    ``stepsize_controller`` (default ``diffrax.PIDController(rtol=1e-10, atol=1e-10)``; with a
+    ``stepsize_controller`` (default ``diffrax.PIDController(rtol=1e-10, atol=1e-10)``, in
+    float32 ``1.2e-5``; with a
     ``ConstantStepSize`` give ``dt0``), ``dt0`` (default: chosen by the controller), ``saveat``,
     ``max_steps``, ``adjoint``, ``event``, ``throw`` and ``progress_meter``. The default adjoint,
     :class:`~jaxlag.ForwardSensitivities`, gives ``jax.grad`` by forward sensitivities when at most
@@ -144,7 +171,12 @@ def simulate(
     - ``baumgarte``: optional :class:`~jaxlag.Baumgarte` feedback in the acceleration constraint.
     - ``check_initial_state``: raise if ``(q0, qd0)`` is non-finite, has a singular mass matrix,
       redundant constraints, or is off the constraint manifold by more than
-      ``constraint_tolerance`` (see :func:`~jaxlag.consistent_initial_state`).
+      ``constraint_tolerance`` (default 1e-8 in float64, ``√ε`` = 3.5e-4 in float32; see
+      :func:`~jaxlag.consistent_initial_state`). Non-finite parameters in ``args`` are an error.
+    - ``throw``: on a run-time failure (non-finite equations of motion, a collapsing step size,
+      ``max_steps``, ``max_segments``) raise :class:`~jaxlag.SimulationError` with the numbers
+      and a diagnosis (:mod:`jaxlag.failures`); with ``False`` return the trajectory, whose
+      ``failure`` record says what happened (``traj.raise_if_failed()`` raises later).
 
     Events and unilateral constraints (see :mod:`jaxlag.events`):
 
@@ -166,8 +198,12 @@ def simulate(
             raise ValueError(f"ts must be a non-empty 1-D array of save times; got shape {ts.shape}.")
         # Concrete save times are checked and sliced on the host: no eager device operations.
         ends = np.asarray(ts) if _is_concrete(ts) else ts
-        if _is_concrete(ts) and not np.all(np.diff(ends) > 0):
-            raise ValueError("ts must be strictly increasing.")
+        if _is_concrete(ts):
+            text = _save_times_message(ends)
+            if text is not None:
+                raise ValueError(text)
+        else:  # traced save times: the same check, compiled in
+            ts = failures.raise_from_program(ts, ~jnp.all(jnp.diff(ts) > 0), _SAVE_TIMES, ts)
         t0 = ends[0] if t0 is None else t0
         t1 = ends[-1] if t1 is None else t1
         if saveat is None:
@@ -180,7 +216,10 @@ def simulate(
     if solver is None:
         solver = diffrax.Tsit5()
     if stepsize_controller is None:
-        stepsize_controller = diffrax.PIDController(rtol=1e-10, atol=1e-10)
+        tol = default_solver_tolerance(q0.dtype)
+        stepsize_controller = diffrax.PIDController(rtol=tol, atol=tol)
+    if constraint_tolerance is None:
+        constraint_tolerance = default_constraint_tolerance(q0.dtype)
     if adjoint is None:
         adjoint = ForwardSensitivities()
     if not isinstance(adjoint, (diffrax.AbstractAdjoint, ForwardSensitivities)):
@@ -220,15 +259,16 @@ def simulate(
         (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller, baumgarte,
          projection, events, event) = inputs
         if segmented:
-            ts_out, q, qd, active, log = solve_segments(
+            ts_out, q, qd, active, log, failure = solve_segments(
                 system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_controller, max_steps,
-                adjoint, throw, progress_meter, baumgarte, projection, events, int(max_segments),
+                adjoint, progress_meter, baumgarte, projection, events, int(max_segments),
                 event_root_finder, check_in_jit, constraint_tolerance,
             )
-            return Trajectory.from_states(system, ts_out, q, qd, args, active=active, events=log)
+            return Trajectory.from_states(system, ts_out, q, qd, args, active=active, events=log,
+                                          failure=failure)
         return _solve(
             system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat, max_steps,
-            adjoint, event, throw, progress_meter, baumgarte, projection, check_in_jit,
+            adjoint, event, progress_meter, baumgarte, projection, check_in_jit,
             constraint_tolerance,
         )
 
@@ -239,6 +279,18 @@ def simulate(
         # (a parameter of the caller's grad captured in L): a custom_vjp cannot see it, so the
         # checkpointed adjoint differentiates the simulation as it stands.
         if _is_concrete(inputs) or closes_over_traced_values(run, inputs, adjoint.fallback):
-            return run(inputs, adjoint.fallback)
-        return call_with_forward_sensitivities(run, inputs, adjoint)
-    return run(inputs, adjoint)
+            trajectory = run(inputs, adjoint.fallback)
+        else:
+            trajectory = call_with_forward_sensitivities(run, inputs, adjoint)
+    else:
+        trajectory = run(inputs, adjoint)
+    return _raise_if_failed(trajectory, system, args) if throw else trajectory
+
+
+def _raise_if_failed(trajectory: Trajectory, system: System, args) -> Trajectory:
+    """Eagerly (concrete result: synchronous, full diagnosis) or compiled into the program."""
+    if _is_concrete(trajectory.failure):
+        failures.raise_if_failed(trajectory.failure, system, args)
+        return trajectory
+    q = failures.error_if_failed(trajectory.failure, trajectory.q)
+    return eqx.tree_at(lambda tr: tr.q, trajectory, q)

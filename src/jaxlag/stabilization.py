@@ -172,18 +172,22 @@ class ProjectedSolver(diffrax.AbstractWrappedSolver):
 
 
 def consistent_initial_state(system, q0, qd0, t0=0.0, args=None, *, newton_steps: int = 20,
-                             tolerance: float = 1e-10):
+                             tolerance: float | None = None):
     """Project an approximate initial state onto the constraint manifold.
 
     Positions move by the mass-weighted minimal correction (Newton, ``newton_steps`` fixed
     iterations, so the result is differentiable with ``jax.grad``), then velocities by the
     exact linear projection. Raises (also under ``jit``) if the position residual is still
-    above ``tolerance`` afterwards, e.g. for constraints that cannot all hold at once.
+    above ``tolerance`` afterwards (default 1e-10 in float64, ``√ε`` = 3.5e-4 in float32), e.g.
+    for constraints that cannot all hold at once.
 
     Returns ``(q0, qd0)`` with ``f(q0) = 0``, ``J q̇0 + ∂f/∂t = 0`` and ``A q̇0 + b = 0``.
     """
     q0 = jnp.asarray(q0, dtype=jnp.result_type(float))
     qd0 = jnp.asarray(qd0, dtype=q0.dtype)
+    if tolerance is None:
+        eps = float(jnp.finfo(q0.dtype).eps)
+        tolerance = 1e-10 if eps <= float(jnp.finfo(jnp.float64).eps) else eps ** 0.5
     system.check(q0, qd0, t0, args)
     q, qd = project_state(system, q0, qd0, t0, args, newton_steps, refresh_mass=True)
     if system.holonomic is not None:
@@ -192,7 +196,8 @@ def consistent_initial_state(system, q0, qd0, t0=0.0, args=None, *, newton_steps
             q,
             ~(jnp.max(jnp.abs(f)) <= tolerance),
             "consistent_initial_state: Newton projection did not reach the constraint manifold "
-            "(constraints inconsistent, or the starting guess is too far from any solution).",
+            f"within tolerance {tolerance:g} (constraints inconsistent, or the starting guess is "
+            f"too far from any solution; state dtype {q0.dtype}).",
         )
     return q, qd
 

@@ -83,13 +83,27 @@ class Trajectory(eqx.Module):
     active: Any
     #: :class:`~jaxlag.EventLog` of the switches and events, or None.
     events: Any
+    #: :class:`jaxlag.failures.Failure`: how the run ended (``code`` 0: completed), or None.
+    failure: Any
     system_static: Any = eqx.field(static=True)
 
     @classmethod
     def from_states(cls, system, t, q, qd, args, stats=None, result=None, active=None,
-                    events=None):
+                    events=None, failure=None):
         arrays, static = eqx.partition(system, eqx.is_array)
-        return cls(t, q, qd, args, stats, result, arrays, active, events, static)
+        return cls(t, q, qd, args, stats, result, arrays, active, events, failure, static)
+
+    def raise_if_failed(self) -> None:
+        """Raise :class:`jaxlag.SimulationError` with the numbers and a diagnosis if the run
+        did not complete (for a trajectory computed with ``throw=False``, e.g. under ``jit``;
+        call it outside the transformation). Batched trajectories name the failed members."""
+        if self.failure is None:
+            return
+        from .failures import raise_if_failed
+
+        batched = jnp.ndim(self.failure.code) > 0
+        raise_if_failed(self.failure, None if batched else self.system,
+                        None if batched else self.args)
 
     @property
     def system(self):
