@@ -21,7 +21,7 @@ import jax
 import pytest
 
 README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
-_FENCE = re.compile(r"^```(\S*)\s*$")
+_FENCE = re.compile(r"^(\s*)```(\S*)\s*$")
 
 
 def python_blocks(text):
@@ -30,20 +30,20 @@ def python_blocks(text):
     ``heading`` is the nearest Markdown heading above the block, ``index`` counts the python blocks
     of the whole file from 0 and ``first_line`` is the 1-based line of the block's first code line.
     """
-    blocks, heading, language, start, body = [], "top", None, 0, []
+    blocks, heading, language, start, body, indent = [], "top", None, 0, [], ""
     for number, line in enumerate(text.splitlines(), start=1):
         fence = _FENCE.match(line)
         if language is None:
             if fence:
-                language, start, body = fence.group(1), number + 1, []
+                indent, language, start, body = fence.group(1), fence.group(2), number + 1, []
             elif line.startswith("#"):
                 heading = line.lstrip("#").strip()
-        elif fence and not fence.group(1):
+        elif fence and not fence.group(2):
             if language == "python":
                 blocks.append((heading, len(blocks), start, "\n".join(body) + "\n"))
             language = None
-        else:
-            body.append(line)
+        else:  # a fence indented inside a list item: its lines carry the same indentation
+            body.append(line[len(indent):] if line.startswith(indent) else line)
     assert language is None, f"README.md: unclosed code fence opened at line {start - 1}"
     return blocks
 
@@ -57,7 +57,9 @@ BLOCKS = python_blocks(README.read_text(encoding="utf-8"))
 
 
 def test_the_readme_has_python_blocks():
-    assert len(BLOCKS) >= 10, [b[0] for b in BLOCKS]
+    text = README.read_text(encoding="utf-8")
+    opened = sum(1 for line in text.splitlines() if line.strip() == "```python")
+    assert len(BLOCKS) == opened >= 10, [b[0] for b in BLOCKS]
 
 
 @pytest.fixture
