@@ -16,6 +16,7 @@ from jaxlag.batch import simulate_batch
 jax.config.update("jax_enable_x64", True)
 
 TS = jnp.linspace(0.0, 2.0, 21)
+HANG_GUARD_SECONDS = 1800
 TRACES = []
 
 
@@ -170,16 +171,29 @@ def test_sharded_batch_on_four_host_devices_equals_unsharded():
     env = dict(os.environ)
     env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()
     env["JAX_PLATFORMS"] = "cpu"
+    # The timeout only guards against a hang: the script takes about 30 s on this 2-core CPU, and
+    # a machine shared with other jobs (or the whole suite under xdist) can stretch that several
+    # times, so no wall-clock figure that load can reach is asserted.
     result = subprocess.run([sys.executable, "-c", _SHARDED_SCRIPT], env=env, capture_output=True,
-                            text=True, timeout=300)
+                            text=True, timeout=HANG_GUARD_SECONDS)
     assert result.returncode == 0 and "SHARDED-OK" in result.stdout, result.stdout + result.stderr
 
 
 @pytest.mark.parametrize("kind", ["unconstrained", "unilateral"])
 def test_memory_grows_linearly_in_the_batch(kind):
     """XLA's buffer assignment (``memory_analysis``, deterministic, not a timing) of the compiled
-    batched call: the bytes per added member are the same from B = 16 → 32 as from 32 → 64, and
-    bounded by a small multiple of what one member's inputs and saved outputs need."""
+    batched call grows linearly in B, with a per-member cost bounded by a small multiple of what one
+    member's saved outputs need.
+
+    How exact "linearly" can be checked depends on the backend. On CPU the bytes per added member
+    are the same from B = 16 → 32 as from 32 → 64 (measured exactly equal: 892 B and 2504 B). On a
+    GPU XLA picks fusions, reduction tilings and their scratch buffers per shape, which adds to the
+    temporaries a term that changes with B but not in proportion to it (the exact CPU check failed
+    on an H100). There only the properties that do not depend on those choices are asserted: the
+    arguments and outputs are exactly linear in B; the temporaries grow by at least one ODE state
+    (q, q̇) per added member, since the solver loop carries every member's state; and the total
+    grows by at most 20 × one member's saved outputs per added member, at B = 32, 64 and 128.
+    """
     if kind == "unconstrained":
         system, n = PENDULUM, 1
         q0, qd0, kwargs = jnp.array([0.5]), jnp.array([0.0]), {"args": {"g": 9.81, "l": 1.0}}
@@ -190,16 +204,30 @@ def test_memory_grows_linearly_in_the_batch(kind):
         n, kwargs = 2, {}
         q0, qd0 = jnp.array([jnp.sin(0.2), jnp.cos(0.2)]), jnp.zeros(2)
 
-    def total_bytes(batch):
+    def memory(batch):
         states = jnp.tile(q0, (batch, 1)) * (1.0 + 0.01 * jnp.arange(batch))[:, None]
         run = jax.jit(lambda s: simulate_batch(system, s, qd0, TS, **kwargs).q)
         stats = run.lower(states).compile().memory_analysis()
-        return (stats.temp_size_in_bytes + stats.argument_size_in_bytes
-                + stats.output_size_in_bytes)
+        return {"temp": stats.temp_size_in_bytes, "arguments": stats.argument_size_in_bytes,
+                "outputs": stats.output_size_in_bytes}
 
-    m16, m32, m64 = (total_bytes(b) for b in (16, 32, 64))
-    per_member_low, per_member_high = (m32 - m16) / 16, (m64 - m32) / 32
-    assert per_member_low > 0
-    np.testing.assert_allclose(per_member_high, per_member_low, rtol=0.1)
     saved = TS.shape[0] * n * 8  # one member's saved q, float64
-    assert per_member_high < 20 * saved  # measured: 892 B (5.3×) and 2504 B (7.5×)
+    state = n * 8                # one member's initial positions, float64
+    sizes = (16, 32, 64) if jax.default_backend() == "cpu" else (16, 32, 64, 128)
+    stats = {batch: memory(batch) for batch in sizes}
+    total = {batch: sum(s.values()) for batch, s in stats.items()}
+    for batch, s in stats.items():  # exact on every backend: these buffers are the arrays themselves
+        assert s["arguments"] == batch * state, (batch, s)
+        assert s["outputs"] == batch * saved, (batch, s)
+
+    if jax.default_backend() == "cpu":
+        per_member_low = (total[32] - total[16]) / 16
+        per_member_high = (total[64] - total[32]) / 32
+        assert per_member_low > 0
+        assert per_member_high == per_member_low, (per_member_low, per_member_high)
+        assert per_member_high < 20 * saved  # measured: 892 B (5.3×) and 2504 B (7.5×)
+    else:
+        for batch in sizes[1:]:
+            added = batch - 16
+            assert stats[batch]["temp"] - stats[16]["temp"] >= added * 2 * state, (batch, stats)
+            assert total[batch] - total[16] <= added * 20 * saved, (batch, total)

@@ -1,0 +1,91 @@
+"""Every ```python block of README.md runs, on its own, in a fresh namespace, with no preamble.
+
+So the README cannot drift from the code: a renamed function, a changed signature or a snippet that
+relies on names defined in another block fails here. Each block is one test whose id is the heading
+above it and the block's index in the file. Blocks that are not meant to run (signatures, shell
+commands, equations) are fenced as ```text, ```bash or plain ```.
+
+A block must switch on float64 itself (``jax.config.update("jax_enable_x64", True)``), as a user
+copying it into a fresh interpreter would: the test switches x64 off before running each block (and
+restores it afterwards) so that a block relying on the test suite's ``conftest.py`` is caught.
+"""
+
+import os
+import pathlib
+import re
+import sys
+
+os.environ.setdefault("MPLBACKEND", "Agg")  # before anything imports pyplot: no windows, no display
+
+import jax
+import pytest
+
+README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
+_FENCE = re.compile(r"^(\s*)```(\S*)\s*$")
+
+
+def python_blocks(text):
+    """``(heading, index, first_line, source)`` for each ```python block, in order of appearance.
+
+    ``heading`` is the nearest Markdown heading above the block, ``index`` counts the python blocks
+    of the whole file from 0 and ``first_line`` is the 1-based line of the block's first code line.
+    """
+    blocks, heading, language, start, body, indent = [], "top", None, 0, [], ""
+    for number, line in enumerate(text.splitlines(), start=1):
+        fence = _FENCE.match(line)
+        if language is None:
+            if fence:
+                indent, language, start, body = fence.group(1), fence.group(2), number + 1, []
+            elif line.startswith("#"):
+                heading = line.lstrip("#").strip()
+        elif fence and not fence.group(2):
+            if language == "python":
+                blocks.append((heading, len(blocks), start, "\n".join(body) + "\n"))
+            language = None
+        else:  # a fence indented inside a list item: its lines carry the same indentation
+            body.append(line[len(indent):] if line.startswith(indent) else line)
+    assert language is None, f"README.md: unclosed code fence opened at line {start - 1}"
+    return blocks
+
+
+def _test_id(heading, index):
+    slug = re.sub(r"[^0-9A-Za-z]+", "-", heading).strip("-").lower()
+    return f"{index:02d}-{slug}"
+
+
+BLOCKS = python_blocks(README.read_text(encoding="utf-8"))
+
+
+def test_the_readme_has_python_blocks():
+    text = README.read_text(encoding="utf-8")
+    opened = sum(1 for line in text.splitlines() if line.strip() == "```python")
+    assert len(BLOCKS) == opened >= 10, [b[0] for b in BLOCKS]
+
+
+@pytest.fixture
+def x64_off():
+    """Run with x64 off so that the block has to enable it; restore the suite's setting afterwards."""
+    previous = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", False)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_enable_x64", previous)
+
+
+@pytest.mark.parametrize("heading, index, first_line, source", BLOCKS,
+                         ids=[_test_id(b[0], b[1]) for b in BLOCKS])
+def test_readme_block_runs(heading, index, first_line, source, x64_off):
+    if "jax" in source:
+        assert 'jax.config.update("jax_enable_x64", True)' in source, (
+            f"README.md line {first_line} ({heading!r}): the block uses JAX but does not enable x64 itself")
+    # Line numbers in a traceback point into README.md.
+    code = compile("\n" * (first_line - 1) + source, str(README), "exec")
+    namespace = {"__name__": f"readme_block_{index}"}
+    try:
+        exec(code, namespace)
+    finally:
+        if "matplotlib.pyplot" in sys.modules:
+            import matplotlib.pyplot as plt
+
+            plt.close("all")
