@@ -187,57 +187,57 @@ class _Static(eqx.Module):
     arg_names: tuple = eqx.field(static=True)
 
 
-def _initial_message(d, fail, static: _Static) -> str | None:
+def _initial_message(d, fail, static: _Static, where: str = "at the initial state") -> str | None:
     """The message for one member's host diagnostics, or None (shared by both paths)."""
     if not any(bool(x) for x in fail.values()):
         return None
-    if bool(fail["nonfinite"]):
+    if bool(fail.get("nonfinite", False)):
         return f"The initial state is not finite: q0={np.asarray(d['q'])}, qd0={np.asarray(d['qd'])}."
-    if bool(fail["nonfinite_args"]):
+    if bool(fail.get("nonfinite_args", False)):
         bad = [name for name, ok in zip(static.arg_names, np.asarray(d["args_finite"])) if not ok]
         return (f"A parameter in args is not finite (NaN or inf): {', '.join(bad)}. Every "
                 "floating-point leaf of args must be finite.")
-    if bool(fail["mass"]):
+    if bool(fail.get("mass", False)):
         return (
-            "The mass matrix M = ∂²L/∂q̇² is singular or not positive definite at the initial "
-            f"state (eigenvalues {np.asarray(d['eigenvalues'])}). The Lagrangian is degenerate: "
+            f"The mass matrix M = ∂²L/∂q̇² is singular or not positive definite {where} "
+            f"(eigenvalues {np.asarray(d['eigenvalues'])}). The Lagrangian is degenerate: "
             "every coordinate needs a kinetic term with a positive coefficient."
         )
-    if bool(fail["nonfinite_constraints"]):
+    if bool(fail.get("nonfinite_constraints", False)):
         return (
-            "The constraint functions are not finite at the initial state: f(q0) = "
+            f"The constraint functions are not finite {where}: f(q0) = "
             f"{np.asarray(d['f_raw'])}, ḟ = {np.asarray(d['f_dot'])}, g = {np.asarray(d['g'])} "
             f"(q0 = {np.asarray(d['q'])})."
         )
-    if bool(fail["not_diagonal"]):
+    if bool(fail.get("not_diagonal", False)):
         return (
             "The system declares diagonal_mass=True, but M = ∂²L/∂q̇² has off-diagonal "
-            f"entries at the initial state:\n{np.asarray(d['mass'])}"
+            f"entries {where}:\n{np.asarray(d['mass'])}"
         )
-    if bool(fail["rank"]):
+    if bool(fail.get("rank", False)):
         m_h = d["f"].shape[0]
         names = _dependent_rows(np.asarray(d["rows"]), m_h)
         return (
-            "The constraints are redundant or conflicting at the initial state: the constraint "
+            f"The constraints are redundant or conflicting {where}: the constraint "
             f"Jacobian [J; A] (singular values {np.asarray(d['singular_values'])}) is rank "
             f"deficient; dependent rows: {', '.join(names)}. Remove them, or pass "
             "least_squares=True to jl.System to accept consistent redundant constraints "
             "(minimum-norm multipliers)."
         )
-    if bool(fail["violated"]):
+    if bool(fail.get("violated", False)):
         return (
             f"A unilateral constraint is violated at the initial state (f_i < 0): f(q0) = "
             f"{np.asarray(d['f_raw'])}, unilateral indices {static.unilateral}. One-sided "
             "constraints are written f_i(q, t) >= 0."
         )
-    if bool(fail["off_manifold"]):
+    if bool(fail.get("off_manifold", False)):
         return (
             "The initial state is off the constraint manifold beyond the tolerance "
             f"{_tolerance_text(static.tolerance, np.asarray(d['q']).dtype)}: f(q0) = "
             f"{np.asarray(d['f'])}, ḟ = J q̇0 + ∂f/∂t = {np.asarray(d['f_dot'])}, velocity "
             f"constraints g = {np.asarray(d['g'])}. " + _POINTER
         )
-    if bool(fail["wrong_sign"]):
+    if bool(fail.get("wrong_sign", False)):
         return (
             "A unilateral constraint in contact at t0 has a multiplier of the wrong sign: it "
             "would have to pull (λ_i < 0) to hold, so it cannot be in contact. Start the motion "
@@ -284,3 +284,51 @@ def validate_initial_state(system, q, qd, t, args, tolerance: float | None):
     report = Report(ft.partial(_batched_initial_message, static), ValueError)
     q = raise_from_program(q, failed, report, (d, fail))
     return q, qd
+
+
+# ----------------------------------------------------------------------------- System methods
+def _state_message(what: str, static: _Static, payload) -> str | None:
+    """Why ``System.<what>`` is not finite at a state (first failing member of a batch)."""
+    from .failures import batch_prefix, failed_members, member
+
+    bad, d, fail = payload
+    members = failed_members(np.asarray(bad))
+    if not members:
+        return None
+    index = members[0]
+    bad_i, d_i, fail_i = member((bad, d, fail), index)
+    text = _initial_message(d_i, fail_i, static, where="at this state")
+    if text is None:
+        text = ("L, M and the constraints are regular here; a force, dissipation or constraint "
+                "function returns NaN or inf, or the state is outside their domain.")
+    state = f"q = {np.asarray(d_i['q'])}, q̇ = {np.asarray(d_i['qd'])}"
+    return batch_prefix(index, bad, members) + f"System.{what} is not finite at {state}: {text}"
+
+
+_STATE_CHECKS = ("nonfinite", "nonfinite_args", "mass", "nonfinite_constraints", "rank")
+
+
+def check_state_result(system, what: str, out, q, qd, t, args):
+    """``out`` (a result of a System method at one state), or a ``ValueError`` naming why it
+    cannot be trusted: a singular or indefinite mass matrix, redundant constraints, non-finite
+    inputs or a non-finite result (a singular M gives huge finite accelerations, not NaN, so the
+    eigenvalues are checked, with the thresholds of the initial-state check). Eager for concrete
+    values (the diagnostics program is the one ``simulate``'s check compiles); compiled in
+    otherwise."""
+    from .failures import Report, raise_from_program
+
+    tolerance = default_constraint_tolerance(jnp.result_type(q))
+    static = _Static(tuple(system.unilateral), tolerance, tuple(_inexact_names(args)))
+    if _is_concrete((out, q, qd, t, args)):
+        d, fail = _diagnostics(system, q, qd, t, args, tolerance)
+        flags = {k: fail[k] for k in _STATE_CHECKS}
+        bad, d, flags = jax.device_get((~jnp.all(jnp.isfinite(out)), d, flags))
+        if bool(bad) or any(bool(x) for x in flags.values()):
+            raise ValueError(_state_message(what, static, (True, dict(d, q=q, qd=qd), flags)))
+        return out
+    d = _diagnostic_values(system, q, qd, t, args, tolerance)
+    fail = _failures(d, system.least_squares, tolerance)
+    flags = {k: fail[k] for k in _STATE_CHECKS}
+    bad = ~jnp.all(jnp.isfinite(out)) | jnp.any(jnp.stack(list(flags.values())))
+    report = Report(ft.partial(_state_message, what, static), ValueError)
+    return raise_from_program(out, bad, report, (bad, dict(d, q=q, qd=qd), flags))

@@ -163,7 +163,14 @@ class System(eqx.Module):
         q, qd = jnp.asarray(q), jnp.asarray(qd)
         self.check(q, qd, t, args)
         t = jnp.asarray(t, dtype=jnp.result_type(q.dtype, jnp.float32))
-        return _evaluate_at_state(quantity, self, q, qd, t, as_array_leaves(args))
+        args = as_array_leaves(args)
+        out = _evaluate_at_state(quantity, self, q, qd, t, args)
+        if quantity in _SOLVED:
+            # The KKT solve turns a singular M or redundant rows into NaN: say so instead.
+            from .checks import check_state_result
+
+            out = check_state_result(self, quantity.__name__.strip("_"), out, q, qd, t, args)
+        return out
 
     def lagrangian_value(self, q, qd, t=0.0, args=None):
         """``L(q, q̇, t)``."""
@@ -237,3 +244,7 @@ def _constraint_forces(system, q, qd, t, args):
     _, lam, mu = _kkt.accelerations_and_multipliers(system, q, qd, t, args)
     rows, _ = _constraints.constraint_rows(system, q, qd, t, args)
     return rows.T @ jnp.concatenate([lam, mu])
+
+
+#: Quantities that come out of the KKT solve (checked for finiteness, see ``System._at_state``).
+_SOLVED = (_accelerations, _multipliers, _velocity_multipliers, _constraint_forces)
