@@ -112,6 +112,9 @@ def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, save
     if projection is not None:
         # Saved values between steps come from the solver's interpolant: project them too.
         q, qd = jax.vmap(lambda t, x, v: projection(fast, x, v, t, args))(solution.ts, q, qd)
+        # Saves the run did not reach (a failure, a terminal event) stay inf, not NaN.
+        reached = jnp.isfinite(solution.ts)[:, None]
+        q, qd = jnp.where(reached, q, jnp.inf), jnp.where(reached, qd, jnp.inf)
     failure = failures.from_solution(solution, t0, t1, q0, qd0, solution.ts, q, qd, max_steps)
     return Trajectory.from_states(
         system, solution.ts, q, qd, args, stats=solution.stats, result=solution.result,
