@@ -1,0 +1,307 @@
+r"""Rigid bodies in space: rotations, ``RigidBody3D``, loads at points, rolling contact, closed loops.
+
+Expected values are closed forms derived in the comments (or published values), never outputs of
+the code under test. Integrations use the library default ``PIDController(rtol=1e-10,
+atol=1e-10)``; over the ≤ 1.5 s horizons here the global error stays near 1e-9, so trajectories
+are compared at 1e-7 and conserved quantities at 1e-8 relative. Runs whose initial state is built
+exactly on the constraint manifold skip the initial-state check and, where the constraint residual
+is not the point of the test, the per-step projection (fewer compiled pieces, shorter tests).
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import jaxlag as jl
+import jaxlag.systems as systems
+from jaxlag import analysis, contact, coordinates, loads, rotations
+
+jax.config.update("jax_enable_x64", True)
+
+FAST = {"check_initial_state": False, "projection": None}
+
+
+def euler_to_quaternion_state(angles, rates):
+    """Quaternion and its rate for the ``"zxz"`` state (angles, rates): one jvp."""
+    def to_quaternion(a):
+        return rotations.quaternion_from_matrix(rotations.euler_matrix(a, "zxz"))
+
+    return jax.jvp(to_quaternion, (angles,), (rates,))
+
+
+# ----------------------------------------------------------------------------- rotations
+angles3 = st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3)
+
+
+@settings(max_examples=15, deadline=None)
+@given(angles3, st.sampled_from(["zxz", "zyx", "xyz", "yzy", "xzx"]))
+def test_euler_matrices_are_rotations_and_compose(angles, sequence):
+    a = jnp.asarray(angles)
+    r = rotations.euler_matrix(a, sequence)
+    assert np.allclose(r.T @ r, np.eye(3), atol=1e-14) and np.isclose(np.linalg.det(r), 1.0)
+    # intrinsic a1 a2 a3 about s1 s2 s3 = extrinsic a3 a2 a1 about s3 s2 s1
+    extrinsic = rotations.euler_matrix(a[::-1], sequence[::-1], extrinsic=True)
+    assert np.allclose(r, extrinsic, atol=1e-14)
+    # the quaternion of R gives R back; axis-angle of that quaternion gives R too
+    q = rotations.quaternion_from_matrix(r)
+    assert np.isclose(float(q @ q), 1.0, atol=1e-14)
+    assert np.allclose(rotations.quaternion_matrix(q), r, atol=1e-13)
+    half = jnp.arccos(jnp.clip(q[0], -1.0, 1.0))
+    if float(jnp.sin(half)) > 1e-3:
+        assert np.allclose(rotations.axis_angle_matrix(q[1:], 2 * half), r, atol=1e-12)
+
+
+def test_elementary_rotations_and_yaw_pitch_roll():
+    # R_z(π/2) e_x = e_y (right-handed); yaw–pitch–roll is R_z(yaw) R_y(pitch) R_x(roll)
+    assert np.allclose(rotations.axis_rotation("z", np.pi / 2) @ jnp.array([1.0, 0, 0]), [0, 1, 0],
+                       atol=1e-15)
+    y, p, r = 0.3, -0.2, 0.7
+    expected = (rotations.axis_rotation("z", y) @ rotations.axis_rotation("y", p)
+                @ rotations.axis_rotation("x", r))
+    assert np.allclose(rotations.euler_matrix(jnp.array([y, p, r]), "zyx"), expected, atol=1e-15)
+    # Rodrigues about z equals the elementary rotation
+    assert np.allclose(rotations.axis_angle_matrix(jnp.array([0, 0, 2.0]), 0.4),
+                       rotations.axis_rotation("z", 0.4), atol=1e-15)
+    assert np.allclose(rotations.unskew(rotations.skew(jnp.array([1.0, -2.0, 3.0]))), [1, -2, 3])
+
+
+def test_rotation_errors_are_clear():
+    with pytest.raises(ValueError, match="sequence"):
+        rotations.euler_matrix(jnp.zeros(3), "zzx")
+    with pytest.raises(ValueError, match="shape \\(3,\\)"):
+        rotations.euler_matrix(jnp.zeros(2), "zxz")
+    with pytest.raises(ValueError, match="\\(w, x, y, z\\)"):
+        rotations.quaternion_matrix(jnp.zeros(3))
+    with pytest.raises(ValueError, match="frame"):
+        rotations.angular_velocity(lambda q: rotations.euler_matrix(q), jnp.zeros(3), jnp.zeros(3),
+                                   frame="inertial")
+
+
+def test_angular_velocity_of_euler_angles_closed_form():
+    # zxz: ω_body = (φ̇ sinθ sinψ + θ̇ cosψ, φ̇ sinθ cosψ − θ̇ sinψ, φ̇ cosθ + ψ̇)  (Goldstein 4.87)
+    q = jnp.array([0.3, 0.8, -1.1])
+    qd = jnp.array([0.7, -0.4, 2.5])
+    ph, th, ps = q
+    phd, thd, psd = qd
+    body = [phd * jnp.sin(th) * jnp.sin(ps) + thd * jnp.cos(ps),
+            phd * jnp.sin(th) * jnp.cos(ps) - thd * jnp.sin(ps), phd * jnp.cos(th) + psd]
+
+    def orientation(x):
+        return rotations.euler_matrix(x, "zxz")
+
+    assert np.allclose(rotations.angular_velocity(orientation, q, qd), body, atol=1e-14)
+    world = rotations.angular_velocity(orientation, q, qd, frame="world")
+    assert np.allclose(world, orientation(q) @ jnp.asarray(body), atol=1e-14)
+    # world ω of zxz: φ̇ e_z + θ̇ (line of nodes) + ψ̇ n
+    nodes = rotations.axis_rotation("z", ph) @ jnp.array([1.0, 0, 0])
+    axis = orientation(q)[:, 2]
+    assert np.allclose(world, phd * jnp.array([0, 0, 1.0]) + thd * nodes + psd * axis, atol=1e-14)
+    # time-dependent orientation: R = R_z(Ω t) R(q) adds Ω e_z in world axes
+    spin = 0.9
+
+    def turning(x, t):
+        return rotations.axis_rotation("z", spin * t) @ orientation(x)
+
+    moving = rotations.angular_velocity(turning, q, qd, 0.0, frame="world")
+    assert np.allclose(moving, world + jnp.array([0, 0, spin]), atol=1e-14)
+
+
+def test_rotations_under_jit_vmap_grad():
+    angles = jnp.array([[0.1, 0.2, 0.3], [1.0, -0.5, 2.0]])
+    batched = jax.jit(jax.vmap(lambda a: rotations.euler_matrix(a, "zyx")))(angles)
+    assert batched.shape == (2, 3, 3)
+    quats = jax.vmap(rotations.quaternion_from_matrix)(batched)
+    assert np.allclose(jax.vmap(rotations.quaternion_matrix)(quats), batched, atol=1e-13)
+    # d/dθ of R_x(θ)[1, 1] = −sin θ
+    grad = jax.grad(lambda a: rotations.euler_matrix(a, "xyz")[1, 1])(jnp.array([0.4, 0.0, 0.0]))
+    assert np.isclose(grad[0], -np.sin(0.4), atol=1e-14)
+    # the derivative of ω wrt a rate is the matrix's column (ω is linear in q̇): finite difference
+    q, qd = jnp.array([0.3, 0.8, -1.1]), jnp.array([0.7, -0.4, 2.5])
+    omega = jax.jit(lambda x, v: rotations.angular_velocity(
+        lambda y: rotations.euler_matrix(y), x, v)[2])
+    g = jax.grad(omega, argnums=0)(q, qd)
+    h = 1e-6
+    fd = [(omega(q + h * e, qd) - omega(q - h * e, qd)) / (2 * h) for e in jnp.eye(3)]
+    assert np.allclose(g, fd, atol=1e-8)
+
+
+# ----------------------------------------------------------------------------- RigidBody3D
+def test_rigid_body_kinetic_energy_matches_hand_formulas():
+    m, inertia = 2.0, jnp.array([[0.3, 0.02, -0.01], [0.02, 0.4, 0.03], [-0.01, 0.03, 0.5]])
+
+    def pose(q):
+        return q[:3], rotations.euler_matrix(q[3:], "zyx")
+
+    body = coordinates.RigidBody3D(pose, mass=m, inertia=inertia)
+    q = jnp.array([0.1, -0.3, 0.7, 0.4, -0.2, 1.2])
+    qd = jnp.array([0.5, 0.2, -0.4, 1.1, -0.7, 0.3])
+    omega = rotations.angular_velocity(lambda x: rotations.euler_matrix(x[3:], "zyx"), q, qd)
+    expected = 0.5 * m * qd[:3] @ qd[:3] + 0.5 * omega @ inertia @ omega
+    kinetic = coordinates.kinetic_energy_from_positions(None, bodies=[body])
+    assert np.isclose(kinetic(q, qd), expected, rtol=1e-14)
+    # angular momentum about the centre of mass, world axes: R I ω_body
+    rotation = pose(q)[1]
+    assert np.allclose(body.angular_momentum(q, qd), rotation @ inertia @ omega, atol=1e-14)
+    # a body point's velocity: v + ω_world × (R r)
+    r = jnp.array([0.2, -0.1, 0.3])
+    expected_v = qd[:3] + jnp.cross(rotation @ omega, rotation @ r)
+    assert np.allclose(body.point_velocity(q, qd, r), expected_v, atol=1e-14)
+    # gravity: V = m g z_c
+    lagrangian = coordinates.lagrangian_from_positions(None, gravity=9.81, bodies=[body])
+    assert np.isclose(lagrangian(q, qd), expected - m * 9.81 * q[2], rtol=1e-14)
+
+
+def test_rigid_body_errors_are_clear():
+    bad = coordinates.RigidBody3D(lambda q: (q[:3], jnp.eye(2)), mass=1.0, inertia=jnp.ones(3))
+    with pytest.raises(ValueError, match="\\(3, 3\\)"):
+        bad.kinetic_energy(jnp.zeros(3), jnp.zeros(3), 0.0, None)
+    wrong_inertia = coordinates.RigidBody3D(lambda q: (q[:3], jnp.eye(3)), 1.0, jnp.ones(2))
+    with pytest.raises(ValueError, match="principal moments"):
+        wrong_inertia.kinetic_energy(jnp.zeros(3), jnp.zeros(3), 0.0, None)
+    with pytest.raises(TypeError, match="RigidBody2D or RigidBody3D"):
+        coordinates.lagrangian_from_positions(None, bodies=[object()])
+
+
+# ----------------------------------------------------------------------------- heavy top
+TOP = {"m": 1.0, "l": 0.25, "g": 9.81, "I1": 0.02, "I3": 0.01}
+I1P = TOP["I1"] + TOP["m"] * TOP["l"] ** 2  # transverse moment about the tip
+
+
+@pytest.fixture(scope="module")
+def top_euler():
+    return systems.heavy_top("euler")
+
+
+@pytest.fixture(scope="module")
+def top_quaternion():
+    return systems.heavy_top("quaternion")
+
+
+def test_heavy_top_steady_precession(top_euler):
+    # θ̈ = 0 at fixed θ: m g l = φ̇ (I3 ω3 − I1' φ̇ cos θ); the slow root for spin ω3
+    theta, omega3 = 0.7, 150.0
+    a, b, c = I1P * np.cos(theta), -TOP["I3"] * omega3, TOP["m"] * TOP["g"] * TOP["l"]
+    precession = (-b - np.sqrt(b * b - 4 * a * c)) / (2 * a)
+    q0 = jnp.array([0.0, theta, 0.0])
+    qd0 = jnp.array([precession, 0.0, omega3 - precession * np.cos(theta)])
+    ts = jnp.linspace(0.0, 1.0, 11)
+    traj = jl.simulate(top_euler, q0, qd0, ts, args=TOP, **FAST)
+    assert np.max(np.abs(traj.q[:, 1] - theta)) < 1e-8          # no nutation
+    assert np.allclose(traj.q[:, 0], precession * ts, atol=1e-8)  # uniform precession
+
+
+def test_heavy_top_conserved_quantities_and_forms_agree(top_euler, top_quaternion):
+    q0, qd0 = jnp.array([0.2, 0.6, 0.1]), jnp.array([1.0, 0.5, 40.0])
+    ts = jnp.linspace(0.0, 1.0, 41)
+    euler = jl.simulate(top_euler, q0, qd0, ts, args=TOP, **FAST)
+    th = euler.q[:, 1]
+    omega3 = euler.qd[:, 2] + euler.qd[:, 0] * jnp.cos(th)
+    p_psi = TOP["I3"] * omega3
+    p_phi = I1P * euler.qd[:, 0] * jnp.sin(th) ** 2 + TOP["I3"] * omega3 * jnp.cos(th)
+    assert np.allclose(euler.momenta[:, 2], p_psi, rtol=1e-12)   # the formulas are the momenta
+    assert np.allclose(euler.momenta[:, 0], p_phi, rtol=1e-12)
+    for series in (p_psi, p_phi, euler.energy):
+        assert np.ptp(series) < 1e-8 * np.max(np.abs(series))
+    assert np.ptp(th) > 0.01                                      # it does nutate
+    # the quaternion form from the same initial state gives the same rotation matrices
+    quaternion = jl.simulate(top_quaternion, *euler_to_quaternion_state(q0, qd0), ts, args=TOP, **FAST)
+    r_quaternion = jax.vmap(rotations.quaternion_matrix)(quaternion.q)
+    r_euler = jax.vmap(lambda a: rotations.euler_matrix(a, "zxz"))(euler.q)
+    assert np.max(np.abs(r_quaternion - r_euler)) < 1e-7
+    assert np.allclose(quaternion.energy, euler.energy[0], rtol=1e-8)
+
+
+def test_heavy_top_quaternion_passes_through_gimbal_lock(top_quaternion):
+    # With p_φ = p_ψ the axis can reach the vertical (θ = 0), where "zxz" is singular. Start at
+    # θ = 0.3 falling towards the vertical with spin ω3: p_φ = p_ψ needs
+    # φ̇ = I3 ω3 (1 − cos θ)/(I1' sin²θ).
+    theta, omega3 = 0.3, 30.0
+    phid = TOP["I3"] * omega3 * (1 - np.cos(theta)) / (I1P * np.sin(theta) ** 2)
+    q0, qd0 = jnp.array([0.0, theta, 0.0]), jnp.array([phid, -3.0, omega3 - phid * np.cos(theta)])
+    ts = jnp.linspace(0.0, 0.3, 41)                               # same shape: no recompilation
+    traj = jl.simulate(top_quaternion, *euler_to_quaternion_state(q0, qd0), ts, args=TOP, **FAST)
+    axis = jax.vmap(rotations.quaternion_matrix)(traj.q)[:, :, 2]
+    tilt = np.arccos(np.clip(np.asarray(axis[:, 2]), -1, 1))
+    assert tilt.min() < 0.01 and tilt[-1] > 0.1                  # through the vertical and beyond
+    # the horizontal projection of the axis reverses: it went over the top
+    assert float(axis[0, :2] @ axis[-1, :2]) < 0
+    assert np.ptp(traj.energy) < 1e-8 * np.max(np.abs(traj.energy))
+    # L_z (about the tip) and the spin L·n are conserved (gravity's torque is horizontal, ⟂ n)
+    rotation = jax.vmap(rotations.quaternion_matrix)(traj.q)
+    omega = jax.vmap(lambda q, v: rotations.angular_velocity(rotations.quaternion_matrix, q, v))(
+        traj.q, traj.qd)
+    inertia_tip = jnp.array([I1P, I1P, TOP["I3"]])
+    momentum = jnp.einsum("tij,tj->ti", rotation, inertia_tip * omega)
+    assert np.ptp(momentum[:, 2]) < 1e-8 and np.ptp(TOP["I3"] * omega[:, 2]) < 1e-8
+    assert np.max(np.abs(traj.constraint_residuals[0])) < 1e-9    # index-1 drift, no projection
+
+
+def test_heavy_top_matrix_form_accelerations_match_euler(top_euler):
+    # nine entries of R with RᵀR = I: R̈ equals d²/dt² R(φ, θ, ψ) of the Euler-angle motion
+    matrix = systems.heavy_top("matrix")
+    q, qd = jnp.array([0.2, 0.6, 0.1]), jnp.array([1.0, 0.5, 40.0])
+    qdd = top_euler.accelerations(q, qd, args=TOP)
+
+    def flat(a):
+        return rotations.euler_matrix(a, "zxz").ravel()
+
+    entries, rates = jax.jvp(flat, (q,), (qd,))
+    second = jax.jvp(lambda x: jax.jvp(flat, (x,), (qd,))[1], (q,), (qd,))[1]
+    second = second + jax.jvp(flat, (q,), (qdd,))[1]
+    assert np.allclose(matrix.accelerations(entries, rates, args=TOP), second, rtol=1e-10, atol=1e-8)
+    assert np.all(np.linalg.eigvalsh(matrix.mass_matrix(entries, rates, args=TOP)) > 0)
+
+
+# ----------------------------------------------------------------------------- torque-free body
+@pytest.fixture(scope="module")
+def free_euler():
+    return systems.torque_free_body("euler")
+
+
+@pytest.mark.parametrize("moments", list(itertools.permutations((2.0, 3.0, 4.0))))
+def test_torque_free_rotation_stability_from_linearize(free_euler, moments):
+    # Steady rotation at rate Ω about world z with body y vertical: (φ, θ, ψ) = (Ωt, π/2, 0).
+    # Spin moment I_s = I2, the others I_a = I1, I_b = I3. Wobble ω = Ω √((I_s−I_a)(I_s−I_b)/(I_a I_b));
+    # for the intermediate axis that radicand is negative and −radicand gives the growth rate².
+    a, s, b = moments
+    spin = 1.3
+    args = {"I1": a, "I2": s, "I3": b}
+    lin = analysis.linearize(free_euler, jnp.array([0.0, np.pi / 2, 0.0]),
+                             jnp.array([spin, 0.0, 0.0]), args=args)
+    radicand = (s - a) * (s - b) / (a * b)
+    if s == 3.0:                                                  # intermediate: unstable
+        assert lin.stability() == "unstable"
+        assert np.isclose(float(lin.growth_rate), spin * np.sqrt(-radicand), rtol=1e-10)
+    else:
+        assert float(lin.growth_rate) < 1e-9
+        # the frequencies are the body-frame wobble and Ω itself (a world-fixed direction seen
+        # from the body)
+        assert np.any(np.isclose(np.asarray(lin.frequencies), spin * np.sqrt(radicand), rtol=1e-10))
+
+
+def test_torque_free_body_conserves_angular_momentum_and_energy():
+    system = systems.torque_free_body("quaternion")
+    args = {"I1": 2.0, "I2": 3.0, "I3": 4.0}
+    q0 = rotations.quaternion_from_matrix(rotations.euler_matrix(jnp.array([0.3, 1.0, -0.4])))
+    omega0 = jnp.array([0.4, 2.0, 0.3])                           # near the unstable axis
+    # q̇ = ½ q ⊗ (0, ω_body)
+    w, v = q0[0], q0[1:]
+    qd0 = 0.5 * jnp.concatenate([-(v @ omega0)[None], w * omega0 + jnp.cross(v, omega0)])
+    traj = jl.simulate(system, q0, qd0, jnp.linspace(0.0, 12.0, 61), args=args, **FAST)
+    omega = jax.vmap(lambda q, qd: rotations.angular_velocity(rotations.quaternion_matrix, q, qd))(
+        traj.q, traj.qd)
+    assert np.allclose(omega[0], omega0, atol=1e-12)
+    moments = jnp.array([2.0, 3.0, 4.0])
+    world = jnp.einsum("tij,tj->ti", jax.vmap(rotations.quaternion_matrix)(traj.q), moments * omega)
+    assert np.max(np.abs(world - world[0])) < 1e-7 * np.linalg.norm(world[0])
+    energy = 0.5 * jnp.sum(moments * omega**2, axis=1)
+    assert np.allclose(traj.energy, energy, rtol=1e-12)
+    assert np.ptp(energy) < 1e-8 * energy[0]
+    assert np.ptp(omega[:, 1]) > 1.0                              # the intermediate axis flips
