@@ -416,3 +416,85 @@ def test_loads_under_jit_vmap_grad():
     grad = jax.grad(lambda k: forces(qs[0], jnp.zeros(3), 0.0, {**args, "k": k})[1])(2.0)
     torque_part = forces(qs[0], jnp.zeros(3), 0.0, {**args, "k": 0.0})[1]
     assert np.isclose(grad, forces(qs[0], jnp.zeros(3), 0.0, {**args, "k": 1.0})[1] - torque_part)
+
+
+# ----------------------------------------------------------------------------- rolling contact
+DISK = {"m": 1.2, "R": 0.3, "g": 9.81}
+
+
+def test_rolling_disk_steady_circle_no_slip_and_friction():
+    # Steady rolling (derived from Newton–Euler, see rolling_disk_3d's docstring): with
+    # A = ¼mR², C = ½mR², ω_n = Ω cos θ + s:
+    # (C + mR²) Ω ω_n sin θ − A Ω² sin θ cos θ + m g R cos θ = 0.
+    system = systems.rolling_disk_3d()
+    m, radius, g = DISK["m"], DISK["R"], DISK["g"]
+    big_a, big_c = 0.25 * m * radius**2, 0.5 * m * radius**2
+    theta, omega = 1.2, 2.0
+    omega_n = (big_a * omega**2 * np.sin(theta) * np.cos(theta) - m * g * radius * np.cos(theta)) / (
+        (big_c + m * radius**2) * omega * np.sin(theta))
+    spin = omega_n - omega * np.cos(theta)
+    # φ = ψ = 0: axis n = (0, −sin θ, cos θ), centre at height R sin θ moving with −R ω_n e_x
+    q0 = jnp.array([0.0, 0.0, radius * np.sin(theta), 0.0, theta, 0.0])
+    qd0 = jnp.array([-radius * omega_n, 0.0, 0.0, omega, 0.0, spin])
+    ts = jnp.linspace(0.0, 1.5, 16)
+    traj = jl.simulate(system, q0, qd0, ts, args=DISK, check_initial_state=False)
+    assert np.max(np.abs(traj.q[:, 4] - theta)) < 1e-8                  # constant lean
+    assert np.allclose(traj.qd[:, 3], omega, atol=1e-8) and np.allclose(traj.qd[:, 5], spin, atol=1e-8)
+    # the contact point runs on a circle of radius R s/Ω about O = P + e_z × V_P/Ω, V_P = −R s e_x
+    disk = coordinates.RigidBody3D(lambda q: (q[:3], rotations.euler_matrix(q[3:6])), m, jnp.ones(3))
+    points = jax.vmap(lambda q: contact.contact_point(disk, q, radius))(traj.q)
+    centre = points[0] + jnp.cross(jnp.array([0, 0, 1.0]), jnp.array([-radius * spin, 0, 0])) / omega
+    distance = jnp.linalg.norm(points[:, :2] - centre[:2], axis=1)
+    assert np.allclose(distance, abs(radius * spin / omega), rtol=1e-8)
+    assert np.max(np.abs(points[:, 2])) < 1e-12
+    # no slip at round-off (projected each step)
+    f, f_dot, slip = traj.constraint_residuals
+    assert np.max(np.abs(slip)) < 1e-13 and np.max(np.abs(f)) < 1e-13
+    # friction = centripetal force of the centre, m Ω e_z × v; the normal force = m g
+    v = traj.qd[:, :2]
+    assert np.allclose(traj.velocity_multipliers, m * omega * jnp.stack([-v[:, 1], v[:, 0]], 1),
+                       atol=1e-8)
+    assert np.allclose(traj.multipliers[:, 0], m * g, rtol=1e-9)
+
+
+def test_ball_on_turntable_circles_at_two_sevenths():
+    # centre velocity turns at k Ω/(1 + k) (2Ω/7 for a solid ball): x(t) = O + Rot(ω_c t)(x0 − O)
+    system = systems.ball_on_turntable()
+    args = {"m": 0.5, "R": 0.1, "Omega": 3.0, "k": 0.4}
+    x0, v0 = jnp.array([0.5, 0.0]), jnp.array([0.1, 0.4])
+    table = args["Omega"] * jnp.array([-x0[1], x0[0]])
+    # rolling at t=0: v0 + ω × (−R e_z) = Ω e_z × x0, i.e. (−R ω_y, R ω_x) = table − v0
+    omega = jnp.array([(table[1] - v0[1]) / args["R"], -(table[0] - v0[0]) / args["R"], 0.7])
+    q0 = jnp.array([x0[0], x0[1], 1.0, 0.0, 0.0, 0.0])
+    qd0 = jnp.concatenate([v0, 0.5 * jnp.concatenate([jnp.zeros(1), omega])])   # q̇ = ½ (0, ω) at q = 1
+    ts = jnp.linspace(0.0, 2.0, 11)
+    traj = jl.simulate(system, q0, qd0, ts, args=args, **FAST)
+    rate = args["k"] * args["Omega"] / (1 + args["k"])
+    assert np.isclose(rate, 2 * args["Omega"] / 7)
+    centre = x0 + jnp.array([-v0[1], v0[0]]) / rate
+    c, s = jnp.cos(rate * ts), jnp.sin(rate * ts)
+    rel = x0 - centre
+    expected = centre + jnp.stack([c * rel[0] - s * rel[1], s * rel[0] + c * rel[1]], axis=1)
+    assert np.max(np.abs(traj.q[:, :2] - expected)) < 1e-8
+    assert np.max(np.abs(traj.constraint_residuals[2])) < 1e-9     # index-1 drift, no projection
+    # friction = m × acceleration of the centre (the only horizontal force): m ω_c e_z × v
+    v = traj.qd[:, :2]
+    assert np.allclose(traj.velocity_multipliers, args["m"] * rate * jnp.stack([-v[:, 1], v[:, 0]], 1),
+                       atol=1e-9)
+
+
+def test_rolling_helpers_errors_and_transforms():
+    disk = coordinates.RigidBody3D(lambda q: (q[:3], rotations.euler_matrix(q[3:6])), 1.0, jnp.ones(3))
+    with pytest.raises(ValueError, match="shape"):
+        contact.rolling_without_slipping(disk, 0.3, shape="cube")
+    with pytest.raises(TypeError, match="RigidBody3D"):
+        contact.contact_height(object(), 0.3)
+    rolling = contact.rolling_without_slipping(disk, lambda a: a["R"])
+    q = jnp.array([0.0, 0.0, 0.3 * np.sin(1.0), 0.2, 1.0, 0.0])
+    qds = jnp.asarray(np.random.default_rng(1).normal(size=(4, 6)))
+    out = jax.jit(jax.vmap(lambda v: rolling(q, v, 0.0, {"R": 0.3})))(qds)
+    assert out.shape == (4, 2)
+    # affine in q̇: ∂g/∂R by grad equals a finite difference
+    grad = jax.grad(lambda r: rolling(q, qds[0], 0.0, {"R": r})[0])(0.3)
+    fd = (rolling(q, qds[0], 0.0, {"R": 0.3 + 1e-6})[0] - rolling(q, qds[0], 0.0, {"R": 0.3 - 1e-6})[0]) / 2e-6
+    assert np.isclose(grad, fd, rtol=1e-7)
