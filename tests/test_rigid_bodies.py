@@ -498,3 +498,75 @@ def test_rolling_helpers_errors_and_transforms():
     grad = jax.grad(lambda r: rolling(q, qds[0], 0.0, {"R": r})[0])(0.3)
     fd = (rolling(q, qds[0], 0.0, {"R": 0.3 + 1e-6})[0] - rolling(q, qds[0], 0.0, {"R": 0.3 - 1e-6})[0]) / 2e-6
     assert np.isclose(grad, fd, rtol=1e-7)
+
+
+# ----------------------------------------------------------------------------- closed loops
+BAR = {"a": 0.3, "b": 1.0, "c": 0.8, "d": 0.9}   # crank, coupler, rocker, ground (Grashof crank)
+
+
+def _four_bar():
+    # absolute link angles (θ1, θ2, θ3) from +x; crank A=(0,0)→B, coupler B→C, rocker D=(d,0)→C
+    def link(index, start):
+        def pose(q, args):
+            length = args["abc"[index]]
+            direction = jnp.stack([jnp.cos(q[index]), jnp.sin(q[index])])
+            centre = start(q, args) + 0.5 * length * direction
+            return jnp.concatenate([centre, q[index:index + 1]])
+        return coordinates.RigidBody2D(pose, mass=lambda a: a["abc"[index]],
+                                       inertia=lambda a: a["abc"[index]] ** 3 / 12)
+
+    def crank_end(q, args):
+        return args["a"] * jnp.stack([jnp.cos(q[0]), jnp.sin(q[0])])
+
+    def ground(q, args):
+        return jnp.stack([args["d"], 0.0 * q[0]])
+
+    bodies = [link(0, lambda q, a: jnp.zeros(2, q.dtype)), link(1, crank_end), link(2, ground)]
+
+    def closure(q, args):
+        a, b, c, d = (args[k] for k in "abcd")
+        return (a * jnp.stack([jnp.cos(q[0]), jnp.sin(q[0])]) + b * jnp.stack([jnp.cos(q[1]), jnp.sin(q[1])])
+                - c * jnp.stack([jnp.cos(q[2]), jnp.sin(q[2])]) - jnp.stack([d, 0.0]))
+
+    return jl.System(coordinates.lagrangian_from_positions(None, gravity=9.81, bodies=bodies),
+                     holonomic=closure)
+
+
+def test_four_bar_consistent_state_holds_the_crank():
+    system = _four_bar()
+    crank, crank_rate = 0.6, 1.5
+    guess_q, guess_qd = jnp.array([crank, 1.0, 2.0]), jnp.array([crank_rate, 0.0, 0.0])
+    q, qd = jl.consistent_initial_state(system, guess_q, guess_qd, args=BAR, fixed_q=(0,),
+                                        fixed_qd=(0,))
+    assert float(q[0]) == crank and float(qd[0]) == crank_rate          # held exactly
+    # closed form: C is the intersection of |C − B| = b and |C − D| = c (the branch above BD)
+    a, b, c, d = (BAR[k] for k in "abcd")
+    pb, pd = a * np.array([np.cos(crank), np.sin(crank)]), np.array([d, 0.0])
+    e = np.linalg.norm(pd - pb)
+    along = (b**2 - c**2 + e**2) / (2 * e)
+    unit = (pd - pb) / e
+    pc = pb + along * unit + np.sqrt(b**2 - along**2) * np.array([-unit[1], unit[0]])
+    assert np.isclose(float(q[1]), np.arctan2(*(pc - pb)[::-1]), atol=1e-12)
+    assert np.isclose(float(q[2]), np.arctan2(*(pc - pd)[::-1]), atol=1e-12)
+    # rates from differentiating the loop: b θ̇2 e⊥(θ2) − c θ̇3 e⊥(θ3) = −a θ̇1 e⊥(θ1)
+    perp = lambda th: np.array([-np.sin(th), np.cos(th)])  # noqa: E731
+    matrix = np.stack([b * perp(float(q[1])), -c * perp(float(q[2]))], axis=1)
+    rates = np.linalg.solve(matrix, -a * crank_rate * perp(crank))
+    assert np.allclose(qd[1:], rates, atol=1e-12)
+    # without holding, the crank moves too (the mass-weighted minimal correction)
+    free_q, _ = jl.consistent_initial_state(system, guess_q, guess_qd, args=BAR)
+    assert abs(float(free_q[0]) - crank) > 1e-3
+    # differentiable: dθ3/dθ1 from grad equals the velocity ratio
+    slope = jax.grad(lambda th: jl.consistent_initial_state(
+        system, jnp.array([th, 1.0, 2.0]), jnp.zeros(3), args=BAR, fixed_q=(0,))[0][2])(crank)
+    assert np.isclose(slope, rates[1] / crank_rate, rtol=1e-8)
+
+
+def test_four_bar_holding_too_much_raises():
+    system = _four_bar()
+    with pytest.raises(ValueError, match="fixed_q"):
+        jl.consistent_initial_state(system, jnp.zeros(3), jnp.zeros(3), args=BAR, fixed_q=(5,))
+    # holding the crank and the coupler leaves one free angle for two closure equations
+    with pytest.raises(Exception, match="consistent_initial_state"):
+        jl.consistent_initial_state(system, jnp.array([0.6, 1.0, 2.0]), jnp.zeros(3), args=BAR,
+                                    fixed_q=(0, 1))
