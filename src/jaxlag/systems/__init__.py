@@ -30,10 +30,13 @@ model                                   forms / coordinates
 :func:`gyroscope`                       ``(α, β, γ)``: outer gimbal, inner gimbal, rotor
 :func:`rolling_disk_3d`                 ``(x, y, z, φ, θ, ψ)``, contact + rolling, leans and steers
 :func:`ball_on_turntable`               ``(x, y)`` and a quaternion, rolling on a moving table
+:func:`whipple_bicycle`                 ``(x, y, ψ, φ, θ, δ, θ_R, θ_F)``: four bodies, two rolling
+                                        wheels (benchmark of Meijaard et al. 2007)
 =====================================  =========================================================
 """
 
 from ._common import default_args
+from .bicycle import bicycle_eigenvalues, bicycle_upright_state, whipple_bicycle
 from .fields import charged_particle, kepler
 from .pendulums import (
     cart_pole,
@@ -57,6 +60,8 @@ __all__ = [
     "ball_on_turntable",
     "bead_on_hoop",
     "bead_on_rotating_parabola",
+    "bicycle_eigenvalues",
+    "bicycle_upright_state",
     "cart_pole",
     "charged_particle",
     "default_args",
@@ -76,4 +81,5 @@ __all__ = [
     "spherical_pendulum",
     "spiral",
     "torque_free_body",
+    "whipple_bicycle",
 ]
