@@ -645,3 +645,34 @@ def test_whipple_bicycle_upright_is_a_steady_motion():
     total = sum(systems.whipple_bicycle.defaults[k] for k in ("mR", "mB", "mH", "mF")) * 9.81
     normal = float(multipliers[0])
     assert 0 < normal < total
+
+
+# ----------------------------------------------------------------------------- gyroscope (a chain)
+def test_gyroscope_chain_reduces_to_heavy_top_and_conserves(top_euler):
+    gyro = systems.gyroscope()
+    massless = {**TOP, "inner": (0.0, 0.0, 0.0), "outer": (0.0, 0.0, 0.0)}
+    q, qd = jnp.array([0.2, 0.6, 0.1]), jnp.array([1.0, 0.5, 40.0])
+    both = jax.jit(lambda a, b: (gyro.accelerations(q, qd, args=a), top_euler.accelerations(q, qd, args=b)))
+    gyro_qdd, top_qdd = both(massless, TOP)
+    assert np.allclose(gyro_qdd, top_qdd, rtol=1e-12, atol=1e-12)
+    # with massive gimbals: energy, p_α (vertical axis) and p_γ = I3 (γ̇ + α̇ cos β) are conserved
+    args = {**TOP, "inner": (0.004, 0.002, 0.004), "outer": (0.006, 0.006, 0.004)}
+    traj = jl.simulate(gyro, q, qd, jnp.linspace(0.0, 1.0, 11), args=args, **FAST)
+    p_gamma = TOP["I3"] * (traj.qd[:, 2] + traj.qd[:, 0] * jnp.cos(traj.q[:, 1]))
+    assert np.allclose(traj.momenta[:, 2], p_gamma, rtol=1e-12)
+    for series in (traj.energy, traj.momenta[:, 0], p_gamma):
+        assert np.ptp(series) < 1e-8 * np.max(np.abs(series))
+    # the gimbals' inertia slows the precession relative to the bare top
+    top = jl.simulate(top_euler, q, qd, jnp.linspace(0.0, 1.0, 11), args=TOP, **FAST)
+    assert abs(float(traj.q[-1, 0] - top.q[-1, 0])) > 1e-3
+
+
+def test_rigid_body_lagrangian_grad_and_vmap():
+    # ∂L/∂I3 of the heavy top = ½ ω3² (L is linear in I3), by grad and against a finite difference
+    lagrangian = systems.heavy_top("euler").lagrangian
+    q, qd = jnp.array([0.2, 0.6, 0.1]), jnp.array([1.0, 0.5, 40.0])
+    grad = jax.jit(jax.grad(lambda i3: lagrangian(q, qd, t=0.0, args={**TOP, "I3": i3})))(0.01)
+    omega3 = qd[2] + qd[0] * jnp.cos(q[1])
+    assert np.isclose(grad, 0.5 * omega3**2, rtol=1e-13)
+    batch = jax.vmap(lambda x: lagrangian(x, qd, t=0.0, args=TOP))(jnp.stack([q, 2 * q]))
+    assert batch.shape == (2,)
