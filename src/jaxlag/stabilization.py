@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 
 from . import constraints as _constraints
+from .conventions import as_array_leaves
 from .kkt import deactivate
 from .linalg import solve_psd_least_squares, solve_spd, spd_solver
 from .mechanics import _as_time, mass_matrix, mass_solver
@@ -224,6 +225,15 @@ def consistent_initial_state(system, q0, qd0, t0=0.0, args=None, *, fixed_q=(), 
     n = q0.shape[0]
     free_q = _free_mask(fixed_q, n, q0.dtype, "fixed_q")
     free_qd = _free_mask(fixed_qd, n, q0.dtype, "fixed_qd")
+    t0 = jnp.asarray(t0, dtype=q0.dtype)
+    return _consistent_state(system, q0, qd0, t0, as_array_leaves(args), newton_steps, tolerance,
+                             free_q, free_qd)
+
+
+# One compiled program per system and shapes: eager, the Newton loop would dispatch (and compile)
+# every small operation separately.
+@eqx.filter_jit
+def _consistent_state(system, q0, qd0, t0, args, newton_steps, tolerance, free_q, free_qd):
     q, qd = project_state(system, q0, qd0, t0, args, newton_steps, refresh_mass=True,
                           free_q=free_q, free_qd=free_qd)
     if system.holonomic is not None:
