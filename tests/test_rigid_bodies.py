@@ -158,6 +158,37 @@ def test_rigid_body_kinetic_energy_matches_hand_formulas():
     assert np.isclose(lagrangian(q, qd), expected - m * 9.81 * q[2], rtol=1e-14)
 
 
+def test_rigid_body_on_a_turning_support_has_the_time_derivative_terms():
+    # pose(q, t) = R_z(Ωt)·(x(q), R(q)): T uses ẋ_c and Ṙ including ∂/∂t (one jvp along (q̇, 1))
+    spin, m, inertia = 0.8, 1.5, jnp.array([0.2, 0.3, 0.4])
+
+    def pose(q, t):
+        turn = rotations.axis_rotation("z", spin * t)
+        return turn @ q[:3], turn @ rotations.euler_matrix(q[3:], "zyx")
+
+    body = coordinates.RigidBody3D(pose, mass=m, inertia=inertia)
+    q = jnp.array([0.1, -0.3, 0.7, 0.4, -0.2, 1.2])
+    qd = jnp.array([0.5, 0.2, -0.4, 1.1, -0.7, 0.3])
+    t = 0.6
+    x_dot = jax.jvp(lambda x, s: pose(x, s)[0], (q, jnp.asarray(t)), (qd, jnp.asarray(1.0)))[1]
+    omega = rotations.angular_velocity(lambda x, t: pose(x, t)[1], q, qd, t)
+    expected = 0.5 * m * x_dot @ x_dot + 0.5 * omega @ (inertia * omega)
+    assert np.isclose(body.kinetic_energy(q, qd, t, None), expected, rtol=1e-14)
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.lists(st.floats(-2.0, 2.0), min_size=6, max_size=6))
+def test_force_at_point_is_jacobian_transpose(values):
+    # Q = (∂x_p/∂q)ᵀ F: against the dense Jacobian, for random states and forces
+    body = coordinates.RigidBody3D(lambda q: (q[:3], rotations.euler_matrix(q[3:], "zxz")), 1.0,
+                                   jnp.ones(3))
+    q = jnp.asarray(values)
+    point, force = jnp.array([0.3, -0.1, 0.2]), jnp.array(values[:3]) + 1.0
+    jacobian = jax.jacfwd(lambda x: body.point_position(x, point))(q)
+    forces = loads.generalized_forces(loads.Force((body, point), force))
+    assert np.allclose(forces(q, jnp.zeros(6)), jacobian.T @ force, atol=1e-13)
+
+
 def test_rigid_body_errors_are_clear():
     bad = coordinates.RigidBody3D(lambda q: (q[:3], jnp.eye(2)), mass=1.0, inertia=jnp.ones(3))
     with pytest.raises(ValueError, match="\\(3, 3\\)"):
