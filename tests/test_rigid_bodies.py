@@ -605,6 +605,10 @@ def test_four_bar_holding_too_much_raises():
     with pytest.raises(Exception, match="consistent_initial_state"):
         jl.consistent_initial_state(system, jnp.array([0.6, 1.0, 2.0]), jnp.zeros(3), args=BAR,
                                     fixed_q=(0, 1))
+    # holding two rates at values the loop cannot share
+    with pytest.raises(Exception, match="fixed_qd"):
+        jl.consistent_initial_state(system, jnp.array([0.6, 1.0, 2.0]), jnp.array([1.0, 1.0, 0.0]),
+                                    args=BAR, fixed_q=(0,), fixed_qd=(0, 1))
 
 
 # ----------------------------------------------------------------------------- Whipple bicycle

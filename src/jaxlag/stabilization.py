@@ -193,9 +193,10 @@ def _free_mask(indices, n, dtype, name):
     if isinstance(indices, int):
         indices = (indices,)
     indices = tuple(indices)
-    bad = [i for i in indices if not isinstance(i, (int,)) or not -n <= i < n]
+    bad = [i for i in indices if not hasattr(i, "__index__") or not 0 <= int(i) < n]
     if bad:
         raise ValueError(f"{name} must hold coordinate indices in [0, {n}); got {bad}.")
+    indices = tuple(int(i) for i in indices)
     if not indices:
         return None
     return jnp.ones((n,), dtype).at[jnp.asarray(indices)].set(0.0)
@@ -246,14 +247,8 @@ def _consistent_state(system, q0, qd0, t0, args, newton_steps, tolerance, free_q
             "many coordinates held fixed).",
         )
     if free_qd is not None:
-        _, _, g = _constraints.constraint_residuals(system, q, qd, t0, args)
-        rows = []
-        if system.holonomic is not None:
-            t = _as_time(t0, q)
-            rows.append(jax.jvp(lambda x, s: _constraints.holonomic_residual(system, x, s, args),
-                                (q, t), (qd, jnp.ones_like(t)))[1])
-        rows.append(g)
-        residual = jnp.concatenate(rows)
+        _, f_dot, g = _constraints.constraint_residuals(system, q, qd, t0, args)
+        residual = jnp.concatenate([f_dot, g])
         qd = eqx.error_if(
             qd,
             ~(jnp.max(jnp.abs(residual), initial=0.0) <= tolerance),
