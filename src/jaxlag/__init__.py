@@ -5,7 +5,7 @@ compiled, differentiable diffrax simulation. Sign convention everywhere:
 ``d/dt ∂L/∂q̇ − ∂L/∂q = Jᵀλ + Aᵀμ − ∂R/∂q̇ + Q``, i.e. ``M q̈ = F + Jᵀλ + Aᵀμ``.
 """
 
-from . import analysis, coordinates, systems
+from . import analysis, contact, coordinates, loads, rotations, systems
 from .batch import batch_sharding, simulate_batch
 from .conventions import UserFunction
 from .events import Event, EventLog, multiplier_limit
@@ -23,7 +23,10 @@ __all__ = [
     "analysis",
     "batch_sharding",
     "simulate_batch",
+    "contact",
     "coordinates",
+    "loads",
+    "rotations",
     "systems",
     "Baumgarte",
     "Bounded",

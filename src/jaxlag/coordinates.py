@@ -7,7 +7,9 @@ Instead of deriving the kinetic energy by hand, describe where the mass is:
 with ``ẋ`` computed by one forward-mode ``jax.jvp`` of the position map along ``(q̇, 1)`` in
 ``(q, t)`` (no Jacobian is formed). Point masses are given by a map ``positions(q, [t], [args])
 -> (N, d)``; rigid planar bodies by :class:`RigidBody2D` (centre of mass and orientation angle,
-mass and moment of inertia about the centre of mass). The potential is ``V(q, [t], [args])``
+mass and moment of inertia about the centre of mass); rigid bodies in space by
+:class:`RigidBody3D` (centre of mass and rotation matrix, mass and inertia tensor, kinetic energy
+``½ m |ẋ_c|² + ½ ωᵀIω``). The potential is ``V(q, [t], [args])``
 and/or uniform gravity ``g`` along the last Cartesian axis (``+`` up).
 
 Every user function follows the library's calling convention (state positionally, ``t`` and
@@ -33,9 +35,11 @@ import jax
 import jax.numpy as jnp
 
 from .conventions import UserFunction, wrap_configuration_function
+from .rotations import unskew
 
 __all__ = [
     "RigidBody2D",
+    "RigidBody3D",
     "cylindrical",
     "kinetic_energy_from_positions",
     "lagrangian_from_positions",
@@ -143,6 +147,142 @@ class RigidBody2D(eqx.Module):
         x = jnp.asarray(self.pose(q, t=t, args=args))
         return _parameter(self.mass, args, "mass") * x[1]
 
+    def angular_velocity(self, q, qd, t=0.0, args=None):
+        """``φ̇`` (a scalar: the angular velocity about the out-of-plane axis)."""
+        return _velocity(self.pose, jnp.asarray(q), jnp.asarray(qd), t, args)[1][2]
+
+    def point_position(self, q, point, t=0.0, args=None):
+        """World position ``x_c + R(φ) r`` of the body point with body coordinates ``r`` (2,)."""
+        x = jnp.asarray(self.pose(q, t=t, args=args))
+        r = jnp.asarray(point, x.dtype)
+        c, s = jnp.cos(x[2]), jnp.sin(x[2])
+        return x[:2] + jnp.stack([c * r[0] - s * r[1], s * r[0] + c * r[1]])
+
+    def point_velocity(self, q, qd, point, t=0.0, args=None):
+        """``ẋ_c + φ̇ ẑ × (R r)``: velocity of the body point with body coordinates ``r``."""
+        q, qd = jnp.asarray(q), jnp.asarray(qd)
+        return _velocity(lambda x, t, args: self.point_position(x, point, t, args), q, qd, t, args)[1]
+
+
+def _inertia_tensor(inertia):
+    """Principal moments (3,) or a symmetric tensor (3, 3), as a (3, 3) tensor."""
+    if inertia.shape == (3,):
+        return jnp.diag(inertia)
+    if inertia.shape == (3, 3):
+        return inertia
+    raise ValueError(
+        "A RigidBody3D inertia must be the principal moments, shape (3,), or the inertia tensor "
+        f"in body axes about the centre of mass, shape (3, 3); got shape {inertia.shape}."
+    )
+
+
+class RigidBody3D(eqx.Module):
+    r"""A rigid body moving in space (z up for gravity).
+
+    - ``pose``: ``pose(q, [t], [args]) -> (x_c, R)``: the centre of mass (3,) and the rotation
+      matrix (3, 3) taking body components to world components. Any parameterization of ``R``
+      works: Euler angles (:func:`jaxlag.rotations.euler_matrix`), a quaternion
+      (:func:`jaxlag.rotations.quaternion_matrix`, with ``|q|² = 1`` as a holonomic constraint),
+      the nine entries of ``R`` themselves (with ``RᵀR = I`` as constraints), or a product of
+      joint rotations along a chain of bodies.
+    - ``mass``: ``m``; ``inertia``: principal moments ``(I₁, I₂, I₃)`` or the inertia tensor
+      ``I`` (3, 3), in body axes about the centre of mass (numbers, arrays or functions of
+      ``args``).
+
+    Kinetic energy (König): ``T = ½ m |ẋ_c|² + ½ ωᵀ I ω`` with ``[ω]ₓ = RᵀṘ`` (body axes), ``ẋ_c``
+    and ``Ṙ`` from one ``jax.jvp`` of the pose along ``(q̇, 1)``. It is evaluated as
+    ``½ tr(Ṙ E Ṙᵀ)`` with the body's second-moment tensor ``E = ∫ r rᵀ dm = ½ tr(I) 𝟙 − I``:
+    identical to ``½ ωᵀIω`` whenever ``R`` is a rotation, and, when ``R`` is off the rotation
+    group (a quaternion off the unit sphere, nine free matrix entries), the kinetic energy of the
+    body's mass points at ``x_c + R r``, so the mass matrix stays positive definite in every
+    direction and the constraints keep the motion on the group. Gravity acts on ``x_c[2]``.
+    """
+
+    pose: UserFunction
+    mass: Any
+    inertia: Any
+
+    def __init__(self, pose: Callable, mass, inertia):
+        self.pose = wrap_configuration_function(pose, "rigid body pose function")
+        self.mass = mass
+        self.inertia = inertia
+
+    # ----------------------------------------------------------------- kinematics
+    def _pose(self, q, t, args):
+        out = self.pose(q, t=t, args=args)
+        if not isinstance(out, (tuple, list)) or len(out) != 2:
+            raise ValueError(
+                "A RigidBody3D pose function must return a pair (x_c, R): the centre of mass, "
+                f"shape (3,), and the rotation matrix body → world, shape (3, 3); it returned {out!r}."
+            )
+        x, rotation = jnp.asarray(out[0]), jnp.asarray(out[1])
+        if x.shape != (3,) or rotation.shape != (3, 3):
+            raise ValueError(
+                "A RigidBody3D pose function must return (x_c, R) with shapes (3,) and (3, 3); it "
+                f"returned shapes {x.shape} and {rotation.shape}."
+            )
+        dtype = jnp.result_type(x.dtype, rotation.dtype, float)
+        return x.astype(dtype), rotation.astype(dtype)
+
+    def pose_and_rates(self, q, qd, t=0.0, args=None):
+        """``((x_c, R), (ẋ_c, Ṙ))``: one ``jax.jvp`` of the pose along ``(q̇, 1)``."""
+        q, qd = jnp.asarray(q), jnp.asarray(qd)
+        t = jnp.asarray(t, dtype=q.dtype)
+        return jax.jvp(lambda x, s: self._pose(x, s, args), (q, t), (qd, jnp.ones_like(t)))
+
+    def position(self, q, t=0.0, args=None):
+        """``(x_c, R)``: centre of mass and rotation matrix."""
+        return self._pose(jnp.asarray(q), t, args)
+
+    def angular_velocity(self, q, qd, t=0.0, args=None, *, frame: str = "body"):
+        """``ω`` with ``[ω]ₓ = RᵀṘ`` (``frame="body"``) or ``Ṙ Rᵀ`` (``frame="world"``)."""
+        if frame not in ("body", "world"):
+            raise ValueError(f"frame must be 'body' or 'world'; got {frame!r}.")
+        (_, rotation), (_, rate) = self.pose_and_rates(q, qd, t, args)
+        return unskew(rotation.T @ rate) if frame == "body" else unskew(rate @ rotation.T)
+
+    def point_position(self, q, point, t=0.0, args=None):
+        """World position ``x_c + R r`` of the body point with body coordinates ``r`` (3,)."""
+        x, rotation = self._pose(jnp.asarray(q), t, args)
+        return x + rotation @ jnp.asarray(point, x.dtype)
+
+    def point_velocity(self, q, qd, point, t=0.0, args=None):
+        """``ẋ_c + Ṙ r = v + ω × (R r)`` (world axes): velocity of the body point ``r``."""
+        (_, _), (v, rate) = self.pose_and_rates(q, qd, t, args)
+        return v + rate @ jnp.asarray(point, v.dtype)
+
+    # ----------------------------------------------------------------- dynamics
+    def inertia_tensor(self, args=None):
+        """The inertia tensor ``I`` (3, 3) in body axes about the centre of mass."""
+        return _inertia_tensor(_parameter(self.inertia, args, "inertia"))
+
+    def kinetic_energy(self, q, qd, t, args):
+        (_, _), (v, rate) = self.pose_and_rates(q, qd, t, args)
+        m = _parameter(self.mass, args, "mass")
+        inertia = self.inertia_tensor(args)
+        second_moment = 0.5 * jnp.trace(inertia) * jnp.eye(3, dtype=inertia.dtype) - inertia
+        return 0.5 * m * (v @ v) + 0.5 * jnp.sum((rate @ second_moment) * rate)
+
+    def height(self, q, t, args):
+        """``m z_c``: the body's mass times the height of its centre of mass."""
+        x, _ = self._pose(q, t, args)
+        return _parameter(self.mass, args, "mass") * x[2]
+
+    def momentum(self, q, qd, t=0.0, args=None):
+        """Linear momentum ``m ẋ_c`` (world axes)."""
+        (_, _), (v, _) = self.pose_and_rates(q, qd, t, args)
+        return _parameter(self.mass, args, "mass") * v
+
+    def angular_momentum(self, q, qd, t=0.0, args=None, *, about=None):
+        """Angular momentum in world axes, ``R I ω_body`` about the centre of mass, plus
+        ``(x_c − a) × m ẋ_c`` about a fixed point ``a`` if ``about`` is given."""
+        (x, rotation), (v, rate) = self.pose_and_rates(q, qd, t, args)
+        spin = rotation @ (self.inertia_tensor(args) @ unskew(rotation.T @ rate))
+        if about is None:
+            return spin
+        m = _parameter(self.mass, args, "mass")
+        return spin + jnp.cross(x - jnp.asarray(about, x.dtype), m * v)
+
 
 def _check_masses(masses, n_points):
     if masses.ndim == 0:
@@ -156,9 +296,9 @@ def _check_masses(masses, n_points):
 
 
 def kinetic_energy_from_positions(
-    positions: Callable | None, masses=1.0, *, bodies: Sequence[RigidBody2D] = ()
+    positions: Callable | None, masses=1.0, *, bodies: Sequence[RigidBody2D | RigidBody3D] = ()
 ) -> Callable:
-    r"""``T(q, q̇, t, args) = ½ Σ_k m_k |ẋ_k|² + Σ_b T_b`` for point masses and planar bodies.
+    r"""``T(q, q̇, t, args) = ½ Σ_k m_k |ẋ_k|² + Σ_b T_b`` for point masses and rigid bodies.
 
     ``positions(q, [t], [args]) -> (N, d)`` (or ``(d,)``); ``masses`` a scalar, an ``(N,)``
     array, or a function of ``args``. ``ẋ`` comes from one ``jax.jvp`` along ``(q̇, 1)``, so
@@ -167,8 +307,10 @@ def kinetic_energy_from_positions(
     fn = wrap_configuration_function(positions, "position map") if positions is not None else None
     bodies = tuple(bodies)
     for b in bodies:
-        if not isinstance(b, RigidBody2D):
-            raise TypeError(f"bodies must be RigidBody2D instances; got {type(b).__name__}.")
+        if not isinstance(b, (RigidBody2D, RigidBody3D)):
+            raise TypeError(
+                f"bodies must be RigidBody2D or RigidBody3D instances; got {type(b).__name__}."
+            )
     if fn is None and not bodies:
         raise ValueError("Give a position map, rigid bodies, or both.")
 
@@ -192,7 +334,7 @@ def lagrangian_from_positions(
     potential: Callable | None = None,
     *,
     gravity=None,
-    bodies: Sequence[RigidBody2D] = (),
+    bodies: Sequence[RigidBody2D | RigidBody3D] = (),
 ) -> Callable:
     r"""Build ``L(q, q̇, t, args) = T − V`` from where the mass is.
 
@@ -203,8 +345,10 @@ def lagrangian_from_positions(
     - ``masses``: scalar, ``(N,)`` array, or a function ``masses(args)``.
     - ``potential``: optional ``V(q, [t], [args]) -> scalar`` (springs, fields, ...).
     - ``gravity``: optional ``g`` (number or function of ``args``): uniform gravity along the
-      last Cartesian axis, which points up, ``V_g = g (Σ_k m_k x_k[-1] + Σ_b m_b y_b)``.
-    - ``bodies``: :class:`RigidBody2D` instances (planar rigid bodies, y up).
+      last Cartesian axis, which points up, ``V_g = g (Σ_k m_k x_k[-1] + Σ_b m_b h_b)`` with
+      ``h_b`` the height of a body's centre of mass (``y_c`` in the plane, ``z_c`` in space).
+    - ``bodies``: :class:`RigidBody2D` (planar, y up) and :class:`RigidBody3D` (in space, z up)
+      instances.
 
     ``T = ½ Σ m |ẋ|² (+ bodies)``, ``ẋ = (∂x/∂q) q̇ + ∂x/∂t`` by forward-mode autodiff. The
     returned function declares ``t`` and ``args``; pass it to :class:`jaxlag.System`.

@@ -28,9 +28,10 @@ import jax
 import jax.numpy as jnp
 
 from . import constraints as _constraints
+from .conventions import as_array_leaves
 from .kkt import deactivate
-from .linalg import solve_psd_least_squares, solve_spd
-from .mechanics import _as_time, mass_solver
+from .linalg import solve_psd_least_squares, solve_spd, spd_solver
+from .mechanics import _as_time, mass_matrix, mass_solver
 
 
 class Baumgarte(eqx.Module):
@@ -60,8 +61,23 @@ def _schur_correction(system, solve_mass, rows, residual, active=None):
     return minv_gt @ solve_spd(schur, residual)
 
 
+def _held_mass_solver(system, q, qd, t, args, free):
+    """``b ↦ M̃⁻¹ b`` with ``M̃ = S M S + (I − S)``, ``S = diag(free)``: the metric restricted to
+    the free coordinates (block ``M_ff``) and the identity on the held ones. With the held
+    columns of the constraint rows zeroed, the correction ``M̃⁻¹Gᵀ(G M̃⁻¹ Gᵀ)⁻¹ r`` is the
+    ``M_ff``-weighted minimal change of the free coordinates and leaves the held ones alone."""
+    if free is None:
+        return mass_solver(system, q, qd, t, args)
+    metric = mass_matrix(system, q, qd, t, args) * jnp.outer(free, free) + jnp.diag(1.0 - free)
+    return spd_solver(metric)
+
+
+def _hold(rows, free):
+    return rows if free is None else rows * free[None, :]
+
+
 def project_state(system, q, qd, t, args, newton_steps: int = 2, active=None,
-                  refresh_mass: bool = False):
+                  refresh_mass: bool = False, free_q=None, free_qd=None):
     """Project ``(q, q̇)`` onto ``f = 0``, ``ḟ = 0``, ``g = 0`` in the metric of ``M(q, q̇)``.
 
     The metric is ``M`` at the incoming state, factored once and held fixed through the Newton
@@ -69,16 +85,18 @@ def project_state(system, q, qd, t, args, newton_steps: int = 2, active=None,
     its size. With ``refresh_mass`` the velocity projection uses ``M`` at the corrected position
     (exactly minimal there); per-step projection skips that, as the correction is at the level
     of the local error. ``active`` (m_h,) optionally restricts the holonomic constraints.
+    ``free_q``, ``free_qd`` (n,) optionally mark with 1 the coordinates (velocities) that may
+    move; the others are held at their incoming values.
     """
     t = _as_time(t, q)
-    solve_mass = mass_solver(system, q, qd, t, args)
+    solve_mass = _held_mass_solver(system, q, qd, t, args, free_q)
     if system.holonomic is not None:
         for _ in range(newton_steps):
             f = _constraints.holonomic_residual(system, q, t, args)
-            jac = _constraints.holonomic_jacobian(system, q, t, args, f.shape[0])
+            jac = _hold(_constraints.holonomic_jacobian(system, q, t, args, f.shape[0]), free_q)
             q = q - _schur_correction(system, solve_mass, jac, f, active)
-        if refresh_mass:
-            solve_mass = mass_solver(system, q, qd, t, args)
+    if (refresh_mass and system.holonomic is not None) or free_q is not None or free_qd is not None:
+        solve_mass = _held_mass_solver(system, q, qd, t, args, free_qd)
     rows, residual = [], []
     if system.holonomic is not None:
         def f_of(x, s):
@@ -93,7 +111,7 @@ def project_state(system, q, qd, t, args, newton_steps: int = 2, active=None,
         rows.append(a)
         residual.append(g)
     if rows:
-        rows, residual = jnp.concatenate(rows), jnp.concatenate(residual)
+        rows, residual = _hold(jnp.concatenate(rows), free_qd), jnp.concatenate(residual)
         if active is not None:
             active = jnp.concatenate(
                 [jnp.asarray(active, q.dtype), jnp.ones((rows.shape[0] - active.shape[0],), q.dtype)]
@@ -171,8 +189,21 @@ class ProjectedSolver(diffrax.AbstractWrappedSolver):
         return self.solver.func(terms, t0, y0, args)
 
 
-def consistent_initial_state(system, q0, qd0, t0=0.0, args=None, *, newton_steps: int = 20,
-                             tolerance: float | None = None):
+def _free_mask(indices, n, dtype, name):
+    if isinstance(indices, int):
+        indices = (indices,)
+    indices = tuple(indices)
+    bad = [i for i in indices if not hasattr(i, "__index__") or not 0 <= int(i) < n]
+    if bad:
+        raise ValueError(f"{name} must hold coordinate indices in [0, {n}); got {bad}.")
+    indices = tuple(int(i) for i in indices)
+    if not indices:
+        return None
+    return jnp.ones((n,), dtype).at[jnp.asarray(indices)].set(0.0)
+
+
+def consistent_initial_state(system, q0, qd0, t0=0.0, args=None, *, fixed_q=(), fixed_qd=(),
+                             newton_steps: int = 20, tolerance: float | None = None):
     """Project an approximate initial state onto the constraint manifold.
 
     Positions move by the mass-weighted minimal correction (Newton, ``newton_steps`` fixed
@@ -180,6 +211,13 @@ def consistent_initial_state(system, q0, qd0, t0=0.0, args=None, *, newton_steps
     exact linear projection. Raises (also under ``jit``) if the position residual is still
     above ``tolerance`` afterwards (default 1e-10 in float64, ``√ε`` = 3.5e-4 in float32), e.g.
     for constraints that cannot all hold at once.
+
+    ``fixed_q`` and ``fixed_qd`` (indices into ``q``) hold chosen coordinates and velocities at
+    their given values while the others are solved for: e.g. the crank angle and crank rate of a
+    four-bar linkage, the other link angles following from the loop closure. The correction is
+    then minimal in the metric ``M_ff`` of the free coordinates. Holding too many (fewer free
+    coordinates than independent constraints, or a configuration the loop cannot reach) leaves
+    a residual and raises.
 
     Returns ``(q0, qd0)`` with ``f(q0) = 0``, ``J q̇0 + ∂f/∂t = 0`` and ``A q̇0 + b = 0``.
     """
@@ -189,15 +227,37 @@ def consistent_initial_state(system, q0, qd0, t0=0.0, args=None, *, newton_steps
         eps = float(jnp.finfo(q0.dtype).eps)
         tolerance = 1e-10 if eps <= float(jnp.finfo(jnp.float64).eps) else eps ** 0.5
     system.check(q0, qd0, t0, args)
-    q, qd = project_state(system, q0, qd0, t0, args, newton_steps, refresh_mass=True)
+    n = q0.shape[0]
+    free_q = _free_mask(fixed_q, n, q0.dtype, "fixed_q")
+    free_qd = _free_mask(fixed_qd, n, q0.dtype, "fixed_qd")
+    t0 = jnp.asarray(t0, dtype=q0.dtype)
+    return _consistent_state(system, q0, qd0, t0, as_array_leaves(args), newton_steps, tolerance,
+                             free_q, free_qd)
+
+
+# One compiled program per system and shapes: eager, the Newton loop would dispatch (and compile)
+# every small operation separately.
+@eqx.filter_jit
+def _consistent_state(system, q0, qd0, t0, args, newton_steps, tolerance, free_q, free_qd):
+    q, qd = project_state(system, q0, qd0, t0, args, newton_steps, refresh_mass=True,
+                          free_q=free_q, free_qd=free_qd)
     if system.holonomic is not None:
         f = _constraints.holonomic_residual(system, q, t0, args)
         q = eqx.error_if(
             q,
             ~(jnp.max(jnp.abs(f)) <= tolerance),
             "consistent_initial_state: Newton projection did not reach the constraint manifold "
-            f"within tolerance {tolerance:g} (constraints inconsistent, or the starting guess is "
-            f"too far from any solution; state dtype {q0.dtype}).",
+            f"within tolerance {tolerance:g} (constraints inconsistent, the starting guess too far "
+            f"from any solution, or too many coordinates held fixed; state dtype {q0.dtype}).",
+        )
+    if free_qd is not None:
+        _, f_dot, g = _constraints.constraint_residuals(system, q, qd, t0, args)
+        residual = jnp.concatenate([f_dot, g])
+        qd = eqx.error_if(
+            qd,
+            ~(jnp.max(jnp.abs(residual), initial=0.0) <= tolerance),
+            "consistent_initial_state: the velocity constraints cannot hold with the velocities "
+            "in fixed_qd held (too many held, or incompatible values).",
         )
     return q, qd
 

@@ -25,10 +25,18 @@ model                                   forms / coordinates
 :func:`rolling_disk`                    ``(x, y, φ, θ)``, nonholonomic
 :func:`disk_on_incline`                 ``(s, θ)`` with the rolling constraint ``s = Rθ``
 :func:`knife_edge`                      ``(x, y, θ)``, nonholonomic, on an incline
+:func:`heavy_top`                       ``(φ, θ, ψ)`` Euler; quaternion; the nine entries of R
+:func:`torque_free_body`                ``(φ, θ, ψ)``; quaternion; nine entries of R
+:func:`gyroscope`                       ``(α, β, γ)``: outer gimbal, inner gimbal, rotor
+:func:`rolling_disk_3d`                 ``(x, y, z, φ, θ, ψ)``, contact + rolling, leans and steers
+:func:`ball_on_turntable`               ``(x, y)`` and a quaternion, rolling on a moving table
+:func:`whipple_bicycle`                 ``(x, y, ψ, φ, θ, δ, θ_R, θ_F)``: four bodies, two rolling
+                                        wheels (benchmark of Meijaard et al. 2007)
 =====================================  =========================================================
 """
 
 from ._common import default_args
+from .bicycle import bicycle_eigenvalues, bicycle_upright_state, whipple_bicycle
 from .fields import charged_particle, kepler
 from .pendulums import (
     cart_pole,
@@ -38,6 +46,7 @@ from .pendulums import (
     simple_pendulum,
     spherical_pendulum,
 )
+from .rigid import ball_on_turntable, gyroscope, heavy_top, rolling_disk_3d, torque_free_body
 from .rolling import disk_on_incline, knife_edge, rolling_disk
 from .surfaces import (
     bead_on_hoop,
@@ -48,21 +57,29 @@ from .surfaces import (
 )
 
 __all__ = [
+    "ball_on_turntable",
     "bead_on_hoop",
     "bead_on_rotating_parabola",
+    "bicycle_eigenvalues",
+    "bicycle_upright_state",
     "cart_pole",
     "charged_particle",
     "default_args",
     "disk_on_incline",
     "double_pendulum",
     "free_chain",
+    "gyroscope",
+    "heavy_top",
     "kepler",
     "knife_edge",
     "n_link_pendulum",
     "particle_on_cone",
     "particle_on_sphere",
     "rolling_disk",
+    "rolling_disk_3d",
     "simple_pendulum",
     "spherical_pendulum",
     "spiral",
+    "torque_free_body",
+    "whipple_bicycle",
 ]

@@ -1,0 +1,165 @@
+r"""Loads on bodies -> generalized forces, by virtual work.
+
+A force ``F`` (world components) applied at a point ``x_p(q, t)`` and a torque ``τ`` (world
+components) on a body with angular velocity ``ω`` contribute
+
+    Q = Σ (∂ẋ_p/∂q̇)ᵀ F_p + Σ (∂ω/∂q̇)ᵀ τ_b,
+
+the generalized forces of ``M q̈ = F + Jᵀλ + Aᵀμ`` (they enter as the ``Q`` of
+``d/dt ∂L/∂q̇ − ∂L/∂q = Q``). Both velocities are linear in ``q̇`` (the ``∂/∂t`` part of a
+moving support does no virtual work), so each term is the transpose of that linear map applied
+to the load (``jax.linear_transpose`` of a ``jvp``, a reverse pass): no Jacobian is formed.
+
+Loads may depend on the state, the time and the parameters (springs, dampers, actuators):
+``force(q, qd, [t], [args]) -> (d,)`` and ``torque(q, qd, [t], [args]) -> (3,)`` (a scalar for a
+:class:`~jaxlag.coordinates.RigidBody2D`) follow the library's calling convention; a constant
+array may be given instead of a function::
+
+    tip = (arm, jnp.array([0.0, 0.0, 0.5]))              # body point, body coordinates
+    spring = loads.Force(tip, lambda q, qd, args: -args["k"] * arm.point_position(q, tip[1]))
+    motor = loads.Torque(arm, lambda q, qd, t: jnp.array([0.0, 0.0, jnp.sin(t)]))
+    system = jl.System(L, forces=loads.generalized_forces(spring, motor))
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .conventions import UserFunction, wrap_configuration_function, wrap_state_function
+from .coordinates import RigidBody2D, RigidBody3D
+
+__all__ = ["Force", "Torque", "generalized_forces", "point_map"]
+
+_BODIES = (RigidBody2D, RigidBody3D)
+
+
+def point_map(point) -> UserFunction:
+    """A point as a position map ``x(q, [t], [args]) -> (d,)``.
+
+    ``point`` is a ``(body, r)`` pair (a body point with body coordinates ``r``, on a
+    :class:`RigidBody3D` or :class:`RigidBody2D`) or a position map itself.
+    """
+    if isinstance(point, tuple) and len(point) == 2 and isinstance(point[0], _BODIES):
+        body, offset = point
+
+        def position(q, t, args):
+            return body.point_position(q, offset, t, args)
+
+        return wrap_configuration_function(position, "point position map")
+    if callable(point):
+        return wrap_configuration_function(point, "point position map")
+    raise TypeError(
+        "A point must be a (body, r) pair (body a RigidBody3D or RigidBody2D, r its body "
+        f"coordinates) or a position map x(q, [t], [args]); got {type(point).__name__}."
+    )
+
+
+def _load_function(load, role):
+    if callable(load):
+        return wrap_state_function(load, role)
+    value = jnp.asarray(load)
+
+    def constant(q, qd):
+        return value.astype(q.dtype)
+
+    return wrap_state_function(constant, role)
+
+
+class Force(eqx.Module):
+    """A force ``F`` (world components) acting at ``point``: a ``(body, r)`` pair or a position
+    map ``x(q, [t], [args])``. ``force``: ``F(q, qd, [t], [args]) -> (d,)`` or a constant."""
+
+    point: UserFunction
+    force: UserFunction
+
+    def __init__(self, point, force):
+        self.point = point_map(point)
+        self.force = _load_function(force, "force")
+
+    def generalized(self, q, qd, t, args):
+        """``(∂ẋ_p/∂q̇)ᵀ F``."""
+        load = jnp.asarray(self.force(q, qd, t=t, args=args))
+
+        def velocity(v):
+            return jax.jvp(lambda x: jnp.asarray(self.point(x, t=t, args=args)), (q,), (v,))[1]
+
+        shape = jax.eval_shape(velocity, qd).shape
+        if load.shape != shape:
+            raise ValueError(
+                f"The force at a point must have the shape of the point's position, {shape}; it "
+                f"has shape {load.shape}."
+            )
+        return jax.linear_transpose(velocity, qd)(load.astype(q.dtype))[0]
+
+
+class Torque(eqx.Module):
+    """A torque ``τ`` (world components, (3,); a scalar for a planar body) on ``body``.
+    ``torque``: ``τ(q, qd, [t], [args])`` or a constant."""
+
+    body: Any
+    torque: UserFunction
+
+    def __init__(self, body, torque):
+        if not isinstance(body, _BODIES):
+            raise TypeError(
+                f"A torque acts on a RigidBody3D or RigidBody2D; got {type(body).__name__}."
+            )
+        self.body = body
+        self.torque = _load_function(torque, "torque")
+
+    def generalized(self, q, qd, t, args):
+        """``(∂ω/∂q̇)ᵀ τ`` with ``ω`` the world-axes angular velocity of the body."""
+        load = jnp.asarray(self.torque(q, qd, t=t, args=args))
+        frozen = jnp.asarray(t, q.dtype)
+
+        if isinstance(self.body, RigidBody3D):
+            def velocity(v):
+                (_, rotation), (_, rate) = jax.jvp(
+                    lambda x: self.body.position(x, frozen, args), (q,), (v,))
+                return _world_rate(rotation, rate)
+            shape = (3,)
+        else:
+            def velocity(v):
+                return jax.jvp(lambda x: jnp.asarray(self.body.pose(x, t=frozen, args=args)),
+                               (q,), (v,))[1][2]
+            shape = ()
+        if load.shape != shape:
+            raise ValueError(
+                f"The torque on a {type(self.body).__name__} must have shape {shape}; it has "
+                f"shape {load.shape}."
+            )
+        return jax.linear_transpose(velocity, qd)(load.astype(q.dtype))[0]
+
+
+def _world_rate(rotation, rate):
+    w = rate @ rotation.T
+    return 0.5 * jnp.stack([w[2, 1] - w[1, 2], w[0, 2] - w[2, 0], w[1, 0] - w[0, 1]])
+
+
+def generalized_forces(*loads: Force | Torque) -> Callable:
+    r"""``Q(q, qd, t, args) = Σ (∂ẋ_p/∂q̇)ᵀ F_p + Σ (∂ω/∂q̇)ᵀ τ``: pass it as ``System(forces=...)``.
+
+    Each load is a :class:`Force` or a :class:`Torque` (or a sequence of them).
+    """
+    flat = []
+    for load in loads:
+        items = load if isinstance(load, (list, tuple)) else (load,)
+        for item in items:
+            if not isinstance(item, (Force, Torque)):
+                raise TypeError(f"loads must be Force or Torque instances; got {type(item).__name__}.")
+            flat.append(item)
+    if not flat:
+        raise ValueError("generalized_forces needs at least one Force or Torque.")
+    flat = tuple(flat)
+
+    def forces(q, qd, t=0.0, args=None):
+        total = jnp.zeros_like(q)
+        for item in flat:
+            total = total + item.generalized(q, qd, t, args)
+        return total
+
+    return forces
