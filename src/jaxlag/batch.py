@@ -41,6 +41,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .conventions import as_array_leaves, as_float_state
+from .ensemble_entry import ensemble_by_default as _ensemble_by_default
+from .ensemble_entry import run_ensemble
 from .simulate import simulate
 from .system import System
 from .trajectory import Trajectory
@@ -163,6 +165,8 @@ def simulate_batch(
     args: Any = None,
     args_axes: Any = None,
     sharding: Any = None,
+    method: str = "auto",
+    backend: str = "auto",
     **simulate_kwargs: Any,
 ) -> Trajectory:
     """Simulate a batch of initial states and/or parameters in one compiled, vmapped call.
@@ -181,6 +185,16 @@ def simulate_batch(
       ``jax.devices()``), a :class:`jax.sharding.Mesh` (split over all its axes) or a
       :class:`jax.sharding.NamedSharding` whose spec's first entry splits the batch axis. The
       batch is padded to a multiple of the number of shards and un-padded on return.
+    - ``method``: ``"vmap"`` (``jax.vmap`` of :func:`~jaxlag.simulate`: every option, events,
+      unilateral constraints), ``"ensemble"`` (one batched Runge–Kutta loop for the whole batch,
+      :mod:`jaxlag.ensemble`: explicit tableau solvers, constant or PID steps; ``ts`` may then
+      also be per member, ``(B, T)``) or ``"auto"`` (default): ``"ensemble"`` on an accelerator
+      (GPU/TPU) for constant steps whose step divides the save intervals (the result equals the
+      vmap one to rounding), ``"vmap"`` otherwise, in particular always on CPU.
+    - ``backend`` (``method="ensemble"`` only): ``"xla"`` (the loop as XLA ops), ``"pallas"``
+      (one fused Pallas kernel, constant steps; falls back to ``"xla"`` with a warning if the
+      equations do not lower), ``"pallas-interpret"`` (the kernel in Pallas's interpreter, for
+      testing on CPU), or ``"auto"`` (``"xla"``; see the README for why).
     - ``simulate_kwargs``: every keyword of :func:`~jaxlag.simulate` (``solver``,
       ``stepsize_controller``, ``dt0``, ``saveat``, ``max_steps``, ``adjoint``, ``projection``,
       ``baumgarte``, ``events``, ``max_segments``, ...), applied to every member.
@@ -228,8 +242,14 @@ def simulate_batch(
     if size == 0:
         raise ValueError("The batch is empty (B = 0).")
 
+    if method not in ("auto", "vmap", "ensemble"):
+        raise ValueError(f"method must be 'auto', 'vmap' or 'ensemble'; got {method!r}.")
+    if method == "auto":
+        method = "ensemble" if _ensemble_by_default(system, ts, simulate_kwargs) else "vmap"
     if ts is not None:
         ts = jnp.asarray(ts, dtype=q0.dtype)
+        if ts.ndim == 2 and method == "vmap":
+            raise ValueError(f"Per-member save times ts of shape {ts.shape} need method='ensemble'.")
 
     out_sharding, pad = None, 0
     if sharding is not None:
@@ -249,7 +269,14 @@ def simulate_batch(
         batched_args = jax.tree.map(place_batched, batched_args)
         shared_args = jax.tree.map(place_shared, shared_args)
         if ts is not None:
-            ts = place_shared(ts)
+            ts = place_batched(ts) if ts.ndim == 2 else place_shared(ts)
+
+    if method == "ensemble":
+        out = run_ensemble(system, q0, qd0, ts, batched_args, shared_args, size + pad,
+                           simulate_kwargs, out_sharding, backend)
+        if pad:
+            out = jax.tree.map(lambda x: x[:size] if isinstance(x, jax.Array) else x, out)
+        return out
 
     out = _run_batch(
         system, q0, qd0, ts, batched_args, shared_args,
