@@ -7,6 +7,7 @@ compiled, differentiable diffrax simulation. Sign convention everywhere:
 
 from . import analysis, coordinates, systems
 from .batch import batch_sharding, simulate_batch
+from .ensemble import RK4
 from .conventions import UserFunction
 from .events import Event, EventLog, multiplier_limit
 from .fit import Bounded, Experiment, FitResult, Positive, fit, least_squares_loss
@@ -35,6 +36,7 @@ __all__ = [
     "Positive",
     "ProjectedSolver",
     "Projection",
+    "RK4",
     "System",
     "Trajectory",
     "UserFunction",

@@ -232,6 +232,8 @@ def simulate_batch(
                 f"args{jax.tree_util.keystr(path)} is marked batched by args_axes but is a scalar."
             )
         sizes[f"args{jax.tree_util.keystr(path)}"] = shape[0]
+    if ts is not None and jnp.ndim(ts) == 2:  # per-member save times (method="ensemble")
+        sizes["ts"] = jnp.shape(ts)[0]
     if not sizes:
         raise ValueError(
             "Nothing to batch: give q0 or qd0 of shape (B, n), or mark args leaves with args_axes."

@@ -350,6 +350,7 @@ def _rms(tree, size):
 def _initial_step(field, settings, t0, y0, f0):
     """Hairer's starting step, as diffrax's ``PIDController`` chooses it, per member."""
     size = 2 * y0[0].shape[1]
+    t0, y0, f0 = jax.lax.stop_gradient((t0, y0, f0))
     scale = jax.tree.map(lambda y: settings.atol + jnp.abs(y) * settings.rtol, y0)
     d0 = _rms(jax.tree.map(jnp.divide, y0, scale), size)
     d1 = _rms(jax.tree.map(jnp.divide, f0, scale), size)
@@ -406,9 +407,11 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
         t1 = jnp.where(clipped, target, t + h)
         f_start = c["f"] if fsal else field(t, y)
         y1, error, f_last = rk_step(field, tableau, t, h, y, f_start)
+        # Step-size control is not differentiated (as in diffrax): no zero-times-infinite
+        # cotangents from the norm of a vanishing error.
         scaled = jax.tree.map(
             lambda e, a, b: e / (settings.atol + jnp.maximum(jnp.abs(a), jnp.abs(b)) * settings.rtol),
-            error, y, y1)
+            *jax.lax.stop_gradient((error, y, y1)))
         err = _rms(scaled, 2 * n)
         finite = jnp.all(jnp.isfinite(y1[0]), axis=1) & jnp.all(jnp.isfinite(y1[1]), axis=1)
         err = jnp.where(finite & jnp.isfinite(err), err, jnp.inf)
@@ -455,7 +458,7 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
 
     if settings.loop_kind == "checkpointed":
         final = eqxi.while_loop(cond, body, init, max_steps=settings.max_steps,
-                                buffers=lambda c: c["saves"], kind="checkpointed")
+                                kind="checkpointed")
     else:
         final = eqxi.while_loop(cond, body, init, max_steps=settings.max_steps, kind="lax")
     done = final["k"] >= num_saves

@@ -24,7 +24,6 @@ from .ensemble import (
     ensemble_problem,
     integrate_ensemble,
     make_settings,
-    tableau_of,
 )
 from .stabilization import Projection
 from .trajectory import Trajectory
@@ -170,20 +169,23 @@ def _run(system, q0, qd0, ts, batched_args, shared_args, settings, dt0, grid, ba
 def run_ensemble(system, q0, qd0, ts, batched_args, shared_args, batch, kwargs, out_sharding,
                  backend) -> Trajectory:
     """``simulate_batch(..., method="ensemble")`` after the batch inputs have been prepared."""
-    reason = unsupported(system, ts, kwargs)
-    if reason is not None:
-        raise ValueError("simulate_batch(method='ensemble'): " + reason)
     options = _options(system, kwargs)
     settings = make_settings(options["solver"], options["stepsize_controller"],
                              options["max_steps"], options["adjoint"], options["throw"])
-    tableau_of(options["solver"])
+    reason = unsupported(system, ts, kwargs)
+    if reason is not None:
+        raise ValueError("simulate_batch(method='ensemble'): " + reason)
     keep_first = ts is not None  # simulate saves at ts[0]; with t0/t1/saveat only what saveat asks
     times = _save_times(ts, options)
     if times is None:
         raise ValueError("Give save times `ts`, or `t0` and `t1` (with saveat=SaveAt(t1=True)).")
+    host = None
+    if _is_concrete(times):  # checked and gridded on the host (also under a caller's jit)
+        host = np.asarray(times, dtype=np.float64)
+        host = np.broadcast_to(host, (batch,) + host.shape) if host.ndim == 1 else host
+        if host.ndim == 2 and not np.all(np.diff(host, axis=1) > 0):
+            raise ValueError("ts must be strictly increasing (for every member).")
     times = as_member_times(times, batch, q0.dtype)
-    if _is_concrete(times) and not np.all(np.diff(np.asarray(times), axis=1) > 0):
-        raise ValueError("ts must be strictly increasing (for every member).")
     if q0.ndim == 1:
         q0 = jnp.broadcast_to(q0, (batch,) + q0.shape)
     if qd0.ndim == 1:
@@ -197,7 +199,7 @@ def run_ensemble(system, q0, qd0, ts, batched_args, shared_args, batch, kwargs, 
         projection = None
     grid = None
     if not settings.adaptive:
-        m, inner = constant_grid(np.asarray(times), float(options["dt0"]))
+        m, inner = constant_grid(host, float(options["dt0"]))
         grid = (jnp.asarray(m, jnp.int32), inner, bool(np.all(m == inner)))
         if int(m.sum(axis=1).max()) > settings.max_steps:
             raise ValueError(
