@@ -117,6 +117,8 @@ def _save_times(ts, options):
                                 jnp.asarray(saveat.subs.ts)])
     if options["t0"] is None or options["t1"] is None:
         return None
+    if _is_concrete((options["t0"], options["t1"])):  # stays on the host, also under jit
+        return np.array([float(options["t0"]), float(options["t1"])])
     return jnp.stack([jnp.asarray(options["t0"], float), jnp.asarray(options["t1"], float)])
 
 

@@ -1,0 +1,178 @@
+"""Ensemble throughput: one fused loop for the batch against vmap of diffrax, on any backend.
+
+B double pendulums (unit masses and lengths, g = 9.81, absolute angles, the states of
+``bench_batch``), Tsit5 at a constant step for every contender, ``SaveAt(t1=True)``; one compiled
+call integrates the whole batch. Throughput: ``B × steps / (time of one call)``, state-steps/s.
+
+Contenders (all in one process, same method, same steps, same initial states):
+
+* jaxlag ``simulate_batch(method="ensemble")`` with each backend present: ``"xla"`` (one
+  ``lax.scan`` over steps, state ``(B, n)``) everywhere, ``"pallas"`` (one fused kernel) on a GPU;
+* jaxlag ``simulate_batch(method="vmap")`` (``jax.vmap`` of ``diffrax.diffeqsolve``);
+* (a) the explicit closed-form θ̈₁, θ̈₂, ``jax.vmap`` of ``diffrax.diffeqsolve``;
+* (b) the explicit formula in a bare ``lax.fori_loop`` over steps of the batched Tsit5 stages
+  (written out here, no library code);
+* (c) on a GPU, a hand-written Pallas kernel of the explicit formula: structure-of-arrays state,
+  one program per block of 128 members, the whole integration in registers. On CPU it is only
+  checked for correctness in Pallas's interpreter (B = 4), not timed.
+
+CPU: B = 1, 64, 1024, 8192 (fewer steps for larger B, every call ~0.1 s). GPU: B = 1, 1024,
+10⁵, 10⁶ at 100 steps (the issue's table). jaxlag runs with ``check_initial_state=False`` (the
+baselines check nothing either).
+
+Run: ``python -m benchmarks.bench_ensemble`` from the repository root.
+"""
+
+from __future__ import annotations
+
+from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
+
+import diffrax
+import jax
+import jax.numpy as jnp
+
+import jaxlag as jl
+
+from .bench_batch import initial_states
+from .bench_unconstrained import T, double_pendulum_explicit, double_pendulum_lagrangian, solve_hand
+
+GPU = jax.default_backend() != "cpu"
+if GPU:
+    SIZES = ((1, 100), (1024, 100), (100_000, 100), (1_000_000, 100))
+elif common.QUICK:
+    SIZES = ((1, 200), (64, 100), (1024, 20))
+else:
+    SIZES = ((1, 1000), (64, 1000), (1024, 100), (8192, 25))
+TABLEAU = diffrax.Tsit5().tableau
+BLOCK = 128
+
+
+def _stage_sum(y, h, coefficients, ks):
+    total = None
+    for c, k in zip(coefficients, ks):
+        if c != 0:
+            total = float(c) * k if total is None else total + float(c) * k
+    return y if total is None else y + h * total
+
+
+def _explicit_field(y):
+    """``(θ, θ̇) ↦ (θ̇, θ̈)`` of the whole batch; ``y`` is (B, 4)."""
+    qdd = jax.vmap(double_pendulum_explicit)(y[:, :2], y[:, 2:])
+    return jnp.concatenate([y[:, 2:], qdd], axis=1)
+
+
+def tsit5_step(field, y, h):
+    """One Tsit5 step written out from the tableau (first-same-as-last not used: 7 stages would
+    reuse one evaluation; every contender evaluates the same 6 distinct stages per step)."""
+    ks = [field(y)]
+    for a in TABLEAU.a_lower[:-1]:
+        ks.append(field(_stage_sum(y, h, a, ks)))
+    return _stage_sum(y, h, TABLEAU.b_sol[:-1], ks)
+
+
+def bare_loop(nsteps):
+    """(b) the hand formula, batched Tsit5 in one ``lax.fori_loop``: the XLA speed of light."""
+    h = T / nsteps
+
+    def run(q0, qd0):
+        y = jnp.concatenate([q0, qd0], axis=1)
+        y = jax.lax.fori_loop(0, nsteps, lambda i, y: tsit5_step(_explicit_field, y, h), y)
+        return y[:, :2]
+
+    return run
+
+
+def pallas_kernel(nsteps, interpret=False):
+    """(c) a hand-written Pallas kernel of the explicit formula (structure of arrays)."""
+    from jax.experimental import pallas as pl
+
+    h = T / nsteps
+
+    def soa_field(y):  # y: (4, block), coordinates on the leading axis, members on lanes
+        qdd = double_pendulum_explicit(y[:2], y[2:])  # elementwise over the block
+        return jnp.concatenate([y[2:], qdd], axis=0)
+
+    def kernel(q_ref, qd_ref, out_ref):
+        y = jnp.concatenate([q_ref[...], qd_ref[...]], axis=0)
+        y = jax.lax.fori_loop(0, nsteps, lambda i, y: tsit5_step(soa_field, y, h), y)
+        out_ref[...] = y[:2]
+
+    def run(q0, qd0):
+        batch = q0.shape[0]
+        block = min(BLOCK, batch)
+        pad = -batch % block
+        q = jnp.pad(q0, ((0, pad), (0, 0)), mode="edge").T
+        qd = jnp.pad(qd0, ((0, pad), (0, 0)), mode="edge").T
+        spec = pl.BlockSpec((2, block), lambda i: (0, i))
+        out = pl.pallas_call(kernel, out_shape=jax.ShapeDtypeStruct(q.shape, q.dtype),
+                             grid=(q.shape[1] // block,), in_specs=[spec, spec], out_specs=spec,
+                             interpret=interpret)(q, qd)
+        return out.T[:batch]
+
+    return run
+
+
+def jaxlag_batch(system, nsteps, **kwargs):
+    def run(q0, qd0):
+        return jl.simulate_batch(
+            system, q0, qd0, t0=0.0, t1=T, dt0=T / nsteps, saveat=diffrax.SaveAt(t1=True),
+            solver=diffrax.Tsit5(), stepsize_controller=diffrax.ConstantStepSize(),
+            max_steps=nsteps + 1, check_initial_state=False, **kwargs,
+        ).q[:, -1]
+
+    return run
+
+
+def explicit_vmap(nsteps):
+    return jax.vmap(lambda q0, qd0: solve_hand(double_pendulum_explicit, q0, qd0, nsteps)[-1])
+
+
+def run():
+    system = jl.System(double_pendulum_lagrangian)
+    if not GPU:  # the hand kernel's arithmetic, checked in the interpreter
+        q0, qd0 = initial_states(4)
+        error = common.max_abs_diff(pallas_kernel(50, interpret=True)(q0, qd0),
+                                    bare_loop(50)(q0, qd0))
+        print(f"hand Pallas kernel (interpret mode, B = 4, 50 steps) vs bare loop: max |Δq| = {error:.1e}")
+    rows, errors = [], {}
+    for batch, nsteps in SIZES:
+        q0, qd0 = initial_states(batch)
+        named = [
+            ("jaxlag ensemble, xla", jaxlag_batch(system, nsteps, method="ensemble", backend="xla")),
+        ]
+        if GPU:
+            named.append(("jaxlag ensemble, pallas",
+                          jaxlag_batch(system, nsteps, method="ensemble", backend="pallas")))
+        named += [
+            ("jaxlag simulate_batch (vmap)", jaxlag_batch(system, nsteps, method="vmap")),
+            ("(a) hand formula, diffrax + vmap", explicit_vmap(nsteps)),
+            ("(b) hand formula, bare lax loop", bare_loop(nsteps)),
+        ]
+        if GPU:
+            named.append(("(c) hand formula, Pallas kernel", pallas_kernel(nsteps)))
+        cs = [common.compile_contender(name, fn, q0, qd0) for name, fn in named]
+        common.time_alternating(cs, repeats=common.REPEATS if batch <= 64 else
+                                max(3, common.REPEATS // 2))
+        reference = cs[-1 if not GPU else -2].compiled(q0, qd0)  # the bare loop
+        errors[batch] = max(common.max_abs_diff(c.compiled(q0, qd0), reference) for c in cs)
+        vmap_time = next(c.median for c in cs if "simulate_batch" in c.name)
+        loop_time = next(c.median for c in cs if "bare lax loop" in c.name)
+        for c in cs:
+            rows.append([batch, nsteps, c.name, batch * nsteps / c.median / 1e6,
+                         vmap_time / c.median, c.median / loop_time, c.compile_s,
+                         100 * common.spread(c)])
+    common.print_table(
+        f"Ensemble throughput ({jax.default_backend()}): double pendulum, Tsit5, constant steps, "
+        "SaveAt(t1=True), one compiled call per batch",
+        ["B", "steps", "contender", "M state-steps/s", "speed-up vs simulate_batch",
+         "x(b) time", "compile s", "iqr ±%"],
+        rows,
+    )
+    print("\nagreement with (b), max |Δq(T)| over the batch: "
+          + ", ".join(f"B={k}: {v:.1e}" for k, v in errors.items()))
+    return []
+
+
+if __name__ == "__main__":
+    print(common.environment_line())
+    run()
