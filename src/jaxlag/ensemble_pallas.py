@@ -9,7 +9,9 @@ along the last (lane) axis, so each coordinate of a block is one contiguous load
 
 The right-hand side inside the kernel is the same :class:`~jaxlag.ensemble.BatchedField` as in
 the XLA loop (the library's equations of motion, vmapped over the block): the arithmetic is
-identical, so results agree with the XLA loop to rounding. Whether a given system's equations
+identical, so results agree with the XLA loop to rounding. The kernel's work is traced to jaxprs
+first, so that constants the equations create or close over become kernel inputs (Pallas kernels
+may not capture arrays). Whether a given system's equations
 lower to a GPU kernel (Triton / Mosaic GPU) depends on the operations autodiff produced; when they
 do not, :func:`~jaxlag.ensemble_entry.run_ensemble` catches the lowering error, warns and uses the
 XLA loop. With ``interpret=True`` (``backend="pallas-interpret"``) the kernel runs in Pallas's
@@ -84,58 +86,99 @@ def _kernel_integrate(field, settings, ts, y0, steps_per_interval, inner, unifor
     def shared_spec(x):
         return pl.BlockSpec(x.shape, lambda i, nd=x.ndim: (0,) * nd)
 
-    in_specs = [member_spec(x) for x in inputs] + [shared_spec(x) for x in shared_leaves]
+    # The work of the kernel as two functions of block-shaped values (SoA layout), traced here
+    # to jaxprs: constants that the equations create while tracing (``jnp.stack`` of Python
+    # floats in a Lagrangian, values a user function closes over) become kernel inputs, which
+    # Pallas requires.
+    def unpack(member_vals, shared_vals):
+        block_members = jax.tree.unflatten(member_def, [jnp.moveaxis(v, -1, 0) for v in member_vals])
+        block_shared = jax.tree.unflatten(
+            shared_def, [v.reshape(()) if s else v for v, s in zip(shared_vals, scalar)])
+        return rebuild(block_members, block_shared)
+
+    def first(times, y, member_vals, shared_vals):
+        return unpack(member_vals, shared_vals)(times[:, 0], y) if fsal else None
+
+    def interval(k, y, f, times, counts, member_vals, shared_vals):
+        block_field = unpack(member_vals, shared_vals)
+        start = jax.lax.dynamic_index_in_dim(times, k, axis=1, keepdims=False)
+        end = jax.lax.dynamic_index_in_dim(times, k + 1, axis=1, keepdims=False)
+        m_k = jax.lax.dynamic_index_in_dim(counts, k, axis=0, keepdims=False)
+        h = (end - start) / m_k.astype(end.dtype)
+
+        def step(j, carry):
+            y, f = carry
+            t = start + j.astype(h.dtype) * h
+            f0 = f if fsal else block_field(t, y)
+            y1, _, f_last = rk_step(block_field, tableau, t, h, y, f0)
+            t1 = jnp.where(j + 1 == m_k, end, t + h)
+            y1 = block_field.project(t1, y1)
+            f_next = f_last if fsal else f
+            if not uniform:
+                active = j < m_k
+                y1 = _select(active, y1, y)
+                f_next = _select(active, f_next, f) if fsal else f_next
+            return y1, f_next
+
+        return jax.lax.fori_loop(0, inner, step, (y, f))
+
+    def block_aval(x):
+        shape = x.shape[:-1] + (block,) if x.ndim else x.shape
+        return jax.ShapeDtypeStruct(shape, x.dtype)
+
+    times_aval = jax.ShapeDtypeStruct((block, num_times), ts.dtype)
+    counts_aval = jax.ShapeDtypeStruct((num_times - 1, block), jnp.int32)
+    y_aval = (jax.ShapeDtypeStruct((block, n), y0[0].dtype),) * 2
+    member_avals = [block_aval(x) for x in inputs[4:]]
+    shared_avals = [jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
+                    for x in jax.tree.leaves(shared)]
+    first_jaxpr, f_shape = jax.make_jaxpr(first, return_shape=True)(
+        times_aval, y_aval, member_avals, shared_avals)
+    interval_jaxpr, carry_shape = jax.make_jaxpr(interval, return_shape=True)(
+        jax.ShapeDtypeStruct((), jnp.int32), y_aval, f_shape, times_aval, counts_aval,
+        member_avals, shared_avals)
+    consts = [jnp.asarray(c) for c in (*first_jaxpr.consts, *interval_jaxpr.consts)]
+    num_first = len(first_jaxpr.consts)
+    carry_def = jax.tree.structure(carry_shape)
+    consts_in = [c.reshape((1,)) if c.ndim == 0 else c for c in consts]
+    consts_scalar = [c.ndim == 0 for c in consts]
+
+    in_specs = ([member_spec(x) for x in inputs] + [shared_spec(x) for x in shared_leaves]
+                + [shared_spec(x) for x in consts_in])
     out_shape = [jax.ShapeDtypeStruct((num_times - 1, n, padded), y0[0].dtype)] * 2
     out_specs = [pl.BlockSpec((num_times - 1, n, block), lambda i: (0, 0, i))] * 2
     num_members_inputs = len(inputs)
+    num_shared = len(shared_leaves)
 
     def kernel(*refs):
         q_ref, qd_ref, ts_ref, m_ref = refs[:4]
-        member_refs = refs[4:num_members_inputs]
-        shared_refs = refs[num_members_inputs:num_members_inputs + len(shared_leaves)]
-        out_q, out_qd = refs[num_members_inputs + len(shared_leaves):]
-        block_members = jax.tree.unflatten(
-            member_def, [jnp.moveaxis(r[...], -1, 0) for r in member_refs])
-        block_shared = jax.tree.unflatten(
-            shared_def, [r[...].reshape(()) if s else r[...] for r, s in zip(shared_refs, scalar)])
-        block_field = rebuild(block_members, block_shared)
+        member_vals = [r[...] for r in refs[4:num_members_inputs]]
+        shared_vals = [r[...] for r in refs[num_members_inputs:num_members_inputs + num_shared]]
+        const_refs = refs[num_members_inputs + num_shared:-2]
+        out_q, out_qd = refs[-2:]
+        const_vals = [r[...].reshape(()) if s else r[...] for r, s in zip(const_refs, consts_scalar)]
         times = ts_ref[...].T                 # (block, T)
         counts = m_ref[...]                   # (T-1, block)
         y = (q_ref[...].T, qd_ref[...].T)     # (block, n) while computing
+        flat_data = jax.tree.leaves((times, counts, member_vals, shared_vals))
+        f0 = jax.core.eval_jaxpr(first_jaxpr.jaxpr, const_vals[:num_first],
+                                 *jax.tree.leaves((times, y, member_vals, shared_vals)))
+        f0 = jax.tree.unflatten(jax.tree.structure(f_shape), f0)
 
-        def interval(k, carry):
-            y, f = carry
-            start = jax.lax.dynamic_index_in_dim(times, k, axis=1, keepdims=False)
-            end = jax.lax.dynamic_index_in_dim(times, k + 1, axis=1, keepdims=False)
-            m_k = jax.lax.dynamic_index_in_dim(counts, k, axis=0, keepdims=False)
-            h = (end - start) / m_k.astype(end.dtype)
-
-            def step(j, carry):
-                y, f = carry
-                t = start + j.astype(h.dtype) * h
-                f0 = f if fsal else block_field(t, y)
-                y1, _, f_last = rk_step(block_field, tableau, t, h, y, f0)
-                t1 = jnp.where(j + 1 == m_k, end, t + h)
-                y1 = block_field.project(t1, y1)
-                f_next = f_last if fsal else f
-                if not uniform:
-                    active = j < m_k
-                    y1 = _select(active, y1, y)
-                    f_next = _select(active, f_next, f) if fsal else f_next
-                return y1, f_next
-
-            y, f = jax.lax.fori_loop(0, inner, step, (y, f))
+        def one_interval(k, carry):
+            out = jax.core.eval_jaxpr(interval_jaxpr.jaxpr, const_vals[num_first:],
+                                      k, *jax.tree.leaves(carry), *flat_data)
+            y, f = jax.tree.unflatten(carry_def, out)
             out_q[k] = y[0].T
             out_qd[k] = y[1].T
             return y, f
 
-        f0 = block_field(times[:, 0], y) if fsal else None
-        jax.lax.fori_loop(0, num_times - 1, interval, (y, f0))
+        jax.lax.fori_loop(jnp.int32(0), jnp.int32(num_times - 1), one_interval, (y, f0))
 
     out_q, out_qd = pl.pallas_call(
         kernel, out_shape=out_shape, grid=(padded // block,), in_specs=in_specs,
         out_specs=out_specs, interpret=interpret, name="jaxlag_ensemble",
-    )(*inputs, *shared_leaves)
+    )(*inputs, *shared_leaves, *consts_in)
     return tuple(jnp.swapaxes(x[..., :batch], 1, 2) for x in (out_q, out_qd))
 
 
