@@ -188,6 +188,8 @@ def run_ensemble(system, q0, qd0, ts, batched_args, shared_args, batch, kwargs, 
         if host.ndim == 2 and not np.all(np.diff(host, axis=1) > 0):
             raise ValueError("ts must be strictly increasing (for every member).")
     times = as_member_times(times, batch, q0.dtype)
+    # A weakly typed state (jnp.full(..., 0.5)) would compile a second program for the same shapes.
+    q0, qd0 = (x.astype(x.dtype) if getattr(x, "weak_type", False) else x for x in (q0, qd0))
     if q0.ndim == 1:
         q0 = jnp.broadcast_to(q0, (batch,) + q0.shape)
     if qd0.ndim == 1:
