@@ -150,6 +150,11 @@ def test_pallas_interpret_equals_the_xla_loop(monkeypatch):
     np.testing.assert_allclose(pallas.q, xla.q, rtol=0, atol=1e-14)
     np.testing.assert_allclose(pallas.qd, xla.qd, rtol=0, atol=1e-14)
     np.testing.assert_array_equal(pallas.stats["num_steps"], xla.stats["num_steps"])
+    if jax.default_backend() == "cpu":  # no compiled Pallas on CPU: a warning and the XLA loop
+        with pytest.warns(RuntimeWarning, match="did not lower.*XLA loop"):
+            fallback = jax.jit(lambda q: jl.simulate_batch(PENDULUM_XY, q, qd0, ts, backend="pallas",
+                                                           **options).q)(q0)
+        np.testing.assert_array_equal(fallback, xla.q)
 
 
 def test_gradients_match_closed_form_and_central_differences():

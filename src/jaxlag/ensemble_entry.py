@@ -132,8 +132,7 @@ def _broadcast_members(tree, batch):
     return jax.tree.map(expand, tree)
 
 
-@eqx.filter_jit
-def _run(system, q0, qd0, ts, batched_args, shared_args, settings, dt0, grid, baumgarte,
+def _run_impl(system, q0, qd0, ts, batched_args, shared_args, settings, dt0, grid, baumgarte,
          projection, check, tolerance, keep_first, out_sharding, backend):
     field, y0 = ensemble_problem(system, q0, qd0, ts, batched_args, shared_args, baumgarte,
                                  projection, check, tolerance)
@@ -166,6 +165,24 @@ def _run(system, q0, qd0, ts, batched_args, shared_args, settings, dt0, grid, ba
             lambda x: jax.lax.with_sharding_constraint(x, out_sharding)
             if isinstance(x, jax.Array) and x.ndim >= 1 else x, out)
     return out
+
+
+_run = eqx.filter_jit(_run_impl)
+
+
+def _kernel_lowers(call) -> Exception | None:
+    """Compile the Pallas variant from abstract shapes: ``None`` if it lowers, else the error.
+
+    Done ahead of the real call so that a failure is caught here even when ``simulate_batch`` is
+    traced inside the caller's own ``jax.jit`` (whose compilation would otherwise fail later).
+    """
+    dynamic, static = eqx.partition(call, eqx.is_array)
+    spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)), dynamic)
+    try:
+        jax.jit(lambda d: _run_impl(*eqx.combine(d, static))).lower(spec).compile()
+    except Exception as error:  # noqa: BLE001 - any lowering failure: the XLA loop is exact too
+        return error
+    return None
 
 
 def run_ensemble(system, q0, qd0, ts, batched_args, shared_args, batch, kwargs, out_sharding,
@@ -224,12 +241,12 @@ def run_ensemble(system, q0, qd0, ts, batched_args, shared_args, batch, kwargs, 
             options["baumgarte"], projection, bool(options["check_initial_state"]),
             options["constraint_tolerance"], keep_first, out_sharding)
     if backend == "pallas":
-        try:
-            return _run(*call, backend)
-        except Exception as error:  # noqa: BLE001 - any lowering failure: the XLA loop is exact too
+        error = _kernel_lowers((*call, backend))
+        if error is not None:
+            message = str(error).splitlines()[0][:200] if str(error) else ""
             warnings.warn(
                 f"simulate_batch(method='ensemble', backend='pallas'): the kernel did not lower "
-                f"({type(error).__name__}: {str(error).splitlines()[0][:200]}); using the XLA loop.",
+                f"({type(error).__name__}: {message}); using the XLA loop.",
                 RuntimeWarning, stacklevel=3,
             )
             backend = "xla"
