@@ -31,7 +31,9 @@ order (after a step clipped onto a save time the unclipped proposal is kept). Fi
 are masked; the loop stops when every member has reached its last save time. The loop is
 ``equinox.internal.while_loop``: ``kind="checkpointed"`` (reverse mode, memory ``O(log steps)``)
 with the default ``adjoint=diffrax.RecursiveCheckpointAdjoint()``, ``kind="lax"`` (forward mode)
-with ``adjoint=diffrax.ForwardMode()``, as in diffrax.
+with ``adjoint=diffrax.ForwardMode()``, as in diffrax. The saved states are the loop's write-only
+buffers: every member writes once per iteration (one batched scatter), into its next save column
+when it lands on a save time and into a spare column otherwise, so checkpoints never copy them.
 
 The GPU kernel backend is :mod:`jaxlag.ensemble_pallas`.
 """
@@ -382,7 +384,8 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
         dt = jnp.minimum(dt, settings.dtmax)
     if settings.dtmin is not None:
         dt = jnp.maximum(dt, settings.dtmin)
-    saves = tuple(jnp.zeros((batch, num_saves, n), dtype).at[:, 0].set(y) for y in y0)
+    # One spare column: members that do not save this iteration write there (see below).
+    saves = tuple(jnp.zeros((batch, num_saves + 1, n), dtype) for _ in y0)
     p = settings.error_order
     beta1 = (settings.pcoeff + settings.icoeff + settings.dcoeff) / p
     beta2 = -(settings.pcoeff + 2 * settings.dcoeff) / p
@@ -439,8 +442,12 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
         accept = keep & running
         y1 = field.project(t1, y1)
         save = accept & clipped
-        index = jnp.where(save, c["k"], num_saves)  # out of range: dropped
-        saves = tuple(s.at[members, index].set(v, mode="drop") for s, v in zip(c["saves"], y1))
+        # Every member writes every iteration (one batched scatter), those not saving into the
+        # spare last column, which is never read. (An out-of-range index with mode="drop" would
+        # do the same forward, but the checkpointed loop's reverse pass gathers the cotangent at
+        # that index, and an out-of-range gather fills with NaN.)
+        index = jnp.where(save, c["k"], num_saves)
+        saves = tuple(s.at[members, index].set(v) for s, v in zip(c["saves"], y1))
         out = dict(
             t=jnp.where(accept, t1, t),
             dt=jnp.where(running, dt_next, c["dt"]),
@@ -457,12 +464,13 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
         return out
 
     if settings.loop_kind == "checkpointed":
+        # The saves are write-only buffers: the checkpoints hold the small loop state only.
         final = eqxi.while_loop(cond, body, init, max_steps=settings.max_steps,
-                                kind="checkpointed")
+                                buffers=lambda c: c["saves"], kind="checkpointed")
     else:
         final = eqxi.while_loop(cond, body, init, max_steps=settings.max_steps, kind="lax")
     done = final["k"] >= num_saves
-    saved = jax.tree.map(lambda s: jnp.moveaxis(s[:, 1:], 1, 0), final["saves"])
+    saved = tuple(jnp.moveaxis(s[:, 1:num_saves], 1, 0) for s in final["saves"])
     stats = {"num_steps": final["accepted"] + final["rejected"],
              "num_accepted_steps": final["accepted"], "num_rejected_steps": final["rejected"]}
     return saved, stats, done
