@@ -12,6 +12,11 @@ caveat of ``vmap``-ed adaptive solvers: the batched solver loop runs until the *
 has finished (finished members are masked), so a batch costs ``B ×`` the largest step count in
 it. Group members of similar stiffness, or use a constant step.
 
+With ``method="ensemble"`` the batch is instead an array axis of one batched Runge–Kutta loop
+(:mod:`jaxlag.ensemble`): no per-member solver loop, each member with its own step size when
+adaptive; ``method="auto"`` (the default) uses it on accelerators for constant steps and keeps
+``vmap`` everywhere else (always on CPU).
+
 Sharding uses JAX's own machinery. With ``sharding="auto"`` the batch axis is split over every
 device of ``jax.devices()`` (a 1-D :class:`jax.sharding.Mesh` named ``"batch"``): batched inputs
 are placed with ``jax.device_put(x, NamedSharding(mesh, P("batch")))``, shared inputs are
