@@ -103,6 +103,7 @@ def pallas_kernel(nsteps, interpret=False):
     ``fori_loop`` on values held in registers.
     """
     from jax.experimental import pallas as pl
+    from jax.experimental.pallas import triton  # float64: Triton (Mosaic GPU has no f64 loads)
 
     h = T / nsteps
 
@@ -135,8 +136,8 @@ def pallas_kernel(nsteps, interpret=False):
         spec = pl.BlockSpec((block,), lambda i: (i,))
         shape = jax.ShapeDtypeStruct(columns[0].shape, columns[0].dtype)
         o1, o2 = pl.pallas_call(kernel, out_shape=[shape, shape], grid=(columns[0].shape[0] // block,),
-                                in_specs=[spec] * 4, out_specs=[spec] * 2,
-                                interpret=interpret)(*columns)
+                                in_specs=[spec] * 4, out_specs=[spec] * 2, interpret=interpret,
+                                compiler_params=triton.CompilerParams(num_warps=4))(*columns)
         return jnp.stack([o1, o2], axis=1)[:batch]
 
     return run

@@ -27,6 +27,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton
 
 from .ensemble import _constant_loop, _select, rk_step
 
@@ -178,6 +179,8 @@ def _kernel_integrate(field, settings, ts, y0, steps_per_interval, inner, unifor
     out_q, out_qd = pl.pallas_call(
         kernel, out_shape=out_shape, grid=(padded // block,), in_specs=in_specs,
         out_specs=out_specs, interpret=interpret, name="jaxlag_ensemble",
+        # Triton: it lowers float64 (Mosaic GPU, the default GPU lowering, loads no f64).
+        compiler_params=triton.CompilerParams(num_warps=4),
     )(*inputs, *shared_leaves, *consts_in)
     return tuple(jnp.swapaxes(x[..., :batch], 1, 2) for x in (out_q, out_qd))
 
