@@ -154,17 +154,50 @@ def jaxlag_batch(system, nsteps, **kwargs):
     return run
 
 
+def _jaxlag_kernel_only(system, nsteps):
+    """jaxlag's Pallas backend without its CPU fallback (to ask whether it lowers for CUDA)."""
+    from jaxlag.ensemble import make_settings
+    from jaxlag.ensemble_entry import _run_impl
+
+    settings = make_settings(diffrax.Tsit5(), diffrax.ConstantStepSize(), nsteps, None, True)
+
+    def run(q0, qd0):
+        batch = q0.shape[0]
+        ts = jnp.broadcast_to(jnp.array([0.0, T]), (batch, 2))
+        grid = (jnp.full((batch, 1), nsteps, jnp.int32), nsteps, True)
+        return _run_impl(system, q0, qd0, ts, None, None, settings, None, grid, None, None, False,
+                         1e-8, False, None, "pallas").q
+
+    return run
+
+
 def explicit_vmap(nsteps):
     return jax.vmap(lambda q0, qd0: solve_hand(double_pendulum_explicit, q0, qd0, nsteps)[-1])
 
 
+def lowers_for_cuda(fn, *args) -> str:
+    """Whether ``fn`` lowers for CUDA (Pallas → Triton), checked by ``jax.export`` without a GPU."""
+    from jax import export
+
+    triton_call = export.DisabledSafetyCheck.custom_call("__gpu$xla.gpu.triton")
+    try:
+        export.export(jax.jit(fn), platforms=["cuda"], disabled_checks=[triton_call])(*args)
+    except Exception as error:  # noqa: BLE001 - reported, not raised
+        return f"no ({type(error).__name__}: {str(error).splitlines()[0][:120]})"
+    return "yes"
+
+
 def run():
     system = jl.System(double_pendulum_lagrangian)
-    if not GPU:  # the hand kernel's arithmetic, checked in the interpreter
+    if not GPU:  # the kernels' arithmetic in the interpreter, their GPU lowering by jax.export
         q0, qd0 = initial_states(4)
         error = common.max_abs_diff(pallas_kernel(50, interpret=True)(q0, qd0),
                                     bare_loop(50)(q0, qd0))
         print(f"hand Pallas kernel (interpret mode, B = 4, 50 steps) vs bare loop: max |Δq| = {error:.1e}")
+        q0, qd0 = initial_states(256)
+        print("lowers for CUDA (Triton), float64: hand kernel:",
+              lowers_for_cuda(pallas_kernel(10), q0, qd0), "| jaxlag backend='pallas':",
+              lowers_for_cuda(_jaxlag_kernel_only(system, 10), q0, qd0))
     rows, errors = [], {}
     for batch, nsteps in SIZES:
         q0, qd0 = initial_states(batch)
