@@ -159,12 +159,12 @@ def _jaxlag_kernel_only(system, nsteps):
     from jaxlag.ensemble import make_settings
     from jaxlag.ensemble_entry import _run_impl
 
-    settings = make_settings(diffrax.Tsit5(), diffrax.ConstantStepSize(), nsteps, None, True)
+    settings = make_settings(diffrax.Tsit5(), diffrax.ConstantStepSize(), nsteps, None, False)
 
     def run(q0, qd0):
         batch = q0.shape[0]
         ts = jnp.broadcast_to(jnp.array([0.0, T]), (batch, 2))
-        grid = (jnp.full((batch, 1), nsteps, jnp.int32), nsteps, True)
+        grid = (jnp.full((batch, 1), nsteps, jnp.int32), nsteps, True, True)
         return _run_impl(system, q0, qd0, ts, None, None, settings, None, grid, None, None, False,
                          1e-8, False, None, "pallas").q
 

@@ -174,16 +174,23 @@ def test_pallas_interpret_equals_the_xla_loop(monkeypatch):
     import jaxlag.ensemble_pallas as kernel
 
     monkeypatch.setattr(kernel, "BLOCK", 2)  # 3 members: two programs, one padded member
+    lanewise = []
+    original = kernel._lanes_integrate
+    monkeypatch.setattr(kernel, "_lanes_integrate",
+                        lambda *a, **k: lanewise.append(1) or original(*a, **k))
     q0, qd0 = on_rod()
     args = {"g": 9.81, "l": LENGTHS}
     options = dict(args=args, args_axes={"l": 0, "g": None}, method="ensemble",
                    stepsize_controller=CONSTANT, dt0=0.05)
-    ts = jnp.linspace(0.0, 1.0, 3)
-    xla = jl.simulate_batch(PENDULUM_XY, q0, qd0, ts, backend="xla", **options)
-    pallas = jl.simulate_batch(PENDULUM_XY, q0, qd0, ts, backend="pallas-interpret", **options)
-    np.testing.assert_allclose(pallas.q, xla.q, rtol=0, atol=1e-14)
-    np.testing.assert_allclose(pallas.qd, xla.qd, rtol=0, atol=1e-14)
-    np.testing.assert_array_equal(pallas.stats["num_steps"], xla.stats["num_steps"])
+    # Shared save times: the lane-wise kernel (KKT solve and projection as column code);
+    # per-member save times: the kernel on (block, n) arrays.
+    for ts in (jnp.linspace(0.0, 1.0, 3), jnp.array([[0.0, 0.5, 1.0], [0.0, 0.3, 1.0], [0.0, 0.5, 0.9]])):
+        xla = jl.simulate_batch(PENDULUM_XY, q0, qd0, ts, backend="xla", **options)
+        pallas = jl.simulate_batch(PENDULUM_XY, q0, qd0, ts, backend="pallas-interpret", **options)
+        np.testing.assert_allclose(pallas.q, xla.q, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(pallas.qd, xla.qd, rtol=0, atol=1e-14)
+        np.testing.assert_array_equal(pallas.stats["num_steps"], xla.stats["num_steps"])
+    assert len(lanewise) == 1
     if jax.default_backend() == "cpu":  # no compiled Pallas on CPU: a warning and the XLA loop
         with pytest.warns(RuntimeWarning, match="did not lower.*XLA loop"):
             fallback = jax.jit(lambda q: jl.simulate_batch(PENDULUM_XY, q, qd0, ts, backend="pallas",

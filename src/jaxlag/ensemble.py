@@ -507,7 +507,7 @@ def integrate_ensemble(field, settings, ts, y0, dt0, grid=None):
     """
     if settings.adaptive:
         return _adaptive_loop(field, settings, ts, y0, dt0)
-    steps_per_interval, inner, uniform = grid
+    steps_per_interval, inner, uniform = grid[:3]
     return _constant_loop(field, settings, ts, y0, steps_per_interval, inner, uniform)
 
 

@@ -221,7 +221,9 @@ def run_ensemble(system, q0, qd0, ts, batched_args, shared_args, batch, kwargs, 
     grid = None
     if not settings.adaptive:
         m, inner = constant_grid(host, float(options["dt0"]))
-        grid = (jnp.asarray(m, jnp.int32), inner, bool(np.all(m == inner)))
+        # The 4th entry: every member has the same save times (the lane-wise Pallas kernel).
+        grid = (jnp.asarray(m, jnp.int32), inner, bool(np.all(m == inner)),
+                bool(np.all(host == host[:1])))
         if int(m.sum(axis=1).max()) > settings.max_steps:
             raise ValueError(
                 f"Constant steps of dt0={options['dt0']} need {int(m.sum(axis=1).max())} steps, more "

@@ -29,6 +29,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton
 
@@ -188,17 +189,156 @@ def _kernel_integrate(field, settings, ts, y0, steps_per_interval, inner, unifor
     return tuple(jnp.swapaxes(x[..., :batch], 1, 2) for x in (out_q, out_qd))
 
 
+def _lanes_integrate(field, settings, ts, y0, inner, interpret, block):
+    """The kernel with lane-wise equations (:mod:`jaxlag.lanes`): every state entry, parameter and
+    per-member constant is its own 1-D column of the batch, and the Runge–Kutta step of one
+    member, traced once, is evaluated on columns as straight-line elementwise code. Needs the
+    same save times and step count for every member (they are read as scalars in the kernel)."""
+    tableau = settings.tableau
+    fsal = tableau.fsal
+    batch, num_times = ts.shape
+    n = y0[0].shape[1]
+    block = min(block, batch)
+    pad = -batch % block
+    padded = batch + pad
+    members, shared, rebuild = _split_field(field)
+    member_leaves, member_def = jax.tree.flatten(members)
+    shared_leaves, shared_def = jax.tree.flatten(shared)
+
+    def member_field(t, y, member_vals, shared_vals):
+        """The equations of one member, as a batch of one (the field's own code)."""
+        one = rebuild(jax.tree.unflatten(member_def, [v[None] for v in member_vals]),
+                      jax.tree.unflatten(shared_def, shared_vals))
+        return jax.tree.map(lambda x: x[0], one(t[None], (y[0][None], y[1][None])))
+
+    def member_step(t, h, t1, y, f0, member_vals, shared_vals):
+        def batched(tb, yb):
+            return jax.tree.map(lambda x: x[None], member_field(
+                tb[0], jax.tree.map(lambda x: x[0], yb), member_vals, shared_vals))
+
+        y1, _, f_last = rk_step(batched, tableau, t[None], h[None],
+                                jax.tree.map(lambda x: x[None], y),
+                                jax.tree.map(lambda x: x[None], f0))
+        one = rebuild(jax.tree.unflatten(member_def, [v[None] for v in member_vals]),
+                      jax.tree.unflatten(shared_def, shared_vals))
+        y1 = one.project(t1[None], y1)
+        return jax.tree.map(lambda x: x[0], (y1, f_last))
+
+    from .lanes import constant, lanewise
+
+    scalar = jnp.zeros((), ts.dtype)
+    example_y = (y0[0][0], y0[1][0])
+    example_members = [x[0] for x in member_leaves]
+    step_lanes = lanewise(member_step, scalar, scalar, scalar, example_y, example_y,
+                          example_members, shared_leaves)
+    field_lanes = lanewise(member_field, scalar, example_y, example_members, shared_leaves)
+
+    # Inputs: 1-D columns of length B (members on the lanes) for every entry of the state and of
+    # the per-member parameters; shared values broadcast to columns too (traced, so they cannot
+    # be literals); the save times as one small 1-D array read by scalar loads.
+    def as_columns(x):  # (B, *shape) -> list of (B,) columns
+        x = _pad_members(x, pad)
+        return [x[(slice(None),) + index] for index in np.ndindex(*x.shape[1:])]
+
+    state_columns = as_columns(y0[0]) + as_columns(y0[1])
+    member_columns = [as_columns(x) for x in member_leaves]
+    shared_columns = [as_columns(jnp.broadcast_to(x, (batch,) + jnp.shape(x))) for x in shared_leaves]
+    flat_columns = state_columns + [c for cs in member_columns + shared_columns for c in cs]
+    times = ts[0]
+    column_spec = pl.BlockSpec((block,), lambda i: (i,))
+    times_spec = pl.BlockSpec(times.shape, lambda i: (0,))
+    out_shape = [jax.ShapeDtypeStruct((num_times - 1, padded), y0[0].dtype)] * (2 * n)
+    out_specs = [pl.BlockSpec((num_times - 1, block), lambda i: (0, i))] * (2 * n)
+    shapes = [x.shape[1:] for x in member_leaves], [jnp.shape(x) for x in shared_leaves]
+
+    def kernel(*refs):
+        column_refs, times_ref, out_refs = refs[:len(flat_columns)], refs[len(flat_columns)], \
+            refs[len(flat_columns) + 1:]
+        values = [r[...] for r in column_refs]
+        state, rest = values[:2 * n], values[2 * n:]
+
+        def objects(flat, shape):
+            out = np.empty(shape, dtype=object)
+            for index, value in zip(np.ndindex(*shape), flat):
+                out[index] = value
+            return out
+
+        member_objects, shared_objects, offset = [], [], 0
+        for shape in shapes[0]:
+            size = int(np.prod(shape, dtype=int))
+            member_objects.append(objects(rest[offset:offset + size], shape))
+            offset += size
+        for shape in shapes[1]:
+            size = int(np.prod(shape, dtype=int))
+            shared_objects.append(objects(rest[offset:offset + size], shape))
+            offset += size
+
+        def as_state(flat):
+            return (objects(flat[:n], (n,)), objects(flat[n:], (n,)))
+
+        def flatten(y):
+            return [jnp.broadcast_to(jnp.asarray(e, times.dtype), (block,))
+                    for part in y for e in part.ravel()]
+
+        start_time = constant(times_ref[0])
+        y = state
+        f = (flatten(field_lanes(start_time, as_state(y), member_objects, shared_objects))
+             if fsal else None)
+
+        def interval(k, carry):
+            y, f = carry
+            start, end = times_ref[k], times_ref[k + 1]
+            h = (end - start) / inner
+
+            def step(j, carry):
+                y, f = carry
+                t = start + j.astype(h.dtype) * h
+                t1 = jnp.where(j + 1 == inner, end, t + h)
+                if fsal:
+                    f0 = as_state(f)
+                else:
+                    f0 = field_lanes(constant(t), as_state(y), member_objects, shared_objects)
+                y1, f_last = step_lanes(constant(t), constant(h), constant(t1), as_state(y), f0,
+                                        member_objects, shared_objects)
+                return flatten(y1), (flatten(f_last) if fsal else f)
+
+            y, f = jax.lax.fori_loop(0, inner, step, (y, f))
+            for ref, value in zip(out_refs, y):
+                ref[k] = value
+            return y, f
+
+        jax.lax.fori_loop(jnp.int32(0), jnp.int32(num_times - 1), interval, (y, f))
+
+    outs = pl.pallas_call(
+        kernel, out_shape=out_shape, grid=(padded // block,),
+        in_specs=[column_spec] * len(flat_columns) + [times_spec], out_specs=out_specs,
+        interpret=interpret, name="jaxlag_ensemble_lanes",
+        compiler_params=triton.CompilerParams(num_warps=4),
+    )(*flat_columns, times)
+    q = jnp.stack(outs[:n], axis=-1)[:, :batch]   # (T-1, B, n)
+    qd = jnp.stack(outs[n:], axis=-1)[:, :batch]
+    return q, qd
+
+
 def integrate_pallas(field, settings, ts, y0, grid, interpret=False, block=None):
     """Constant steps in one kernel; returns what :func:`~jaxlag.ensemble.integrate_ensemble`
     returns. Differentiable (the tangents are the XLA loop's, see the module docstring)."""
-    steps_per_interval, inner, uniform = grid
+    steps_per_interval, inner, uniform, shared_times = grid
     block = BLOCK if block is None else block
     members, shared, rebuild = _split_field(field)
+    lanewise = uniform and shared_times
+
+    def kernel_integrate(field, ts, y0, steps):
+        if lanewise:
+            try:
+                return _lanes_integrate(field, settings, ts, y0, inner, interpret, block)
+            except NotImplementedError:  # a primitive without a lane-wise rule
+                pass
+        return _kernel_integrate(field, settings, ts, y0, steps, inner, uniform, interpret, block)
 
     @jax.custom_jvp
     def solve(members, shared, ts, y0, steps):
-        return _kernel_integrate(rebuild(members, shared), settings, ts, y0, steps, inner, uniform,
-                                 interpret, block)
+        return kernel_integrate(rebuild(members, shared), ts, y0, steps)
 
     @solve.defjvp
     def solve_jvp(primals, tangents):
@@ -209,8 +349,7 @@ def integrate_pallas(field, settings, ts, y0, grid, interpret=False, block=None)
             return _constant_loop(rebuild(members, shared), settings, ts, y0, steps, inner,
                                   uniform)[0]
 
-        out = _kernel_integrate(rebuild(members, shared), settings, ts, y0, steps, inner, uniform,
-                                interpret, block)
+        out = kernel_integrate(rebuild(members, shared), ts, y0, steps)
         _, tangent_out = jax.jvp(xla, (members, shared, ts, y0), (t_members, t_shared, t_ts, t_y0))
         return out, tangent_out
 
