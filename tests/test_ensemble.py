@@ -328,3 +328,26 @@ def test_sharded_over_two_devices_equals_unsharded():
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                          timeout=600)
     assert out.returncode == 0 and "ok" in out.stdout, out.stderr[-3000:]
+
+
+def test_lanewise_equations_equal_vmap_for_a_nine_link_chain():
+    # Cumulative sums, unstacking and the Cholesky-based solve of an n = 9 mass matrix, all as
+    # column code (what the Pallas kernel runs).
+    from jaxlag import lanes
+
+    field = jl.EquationsOfMotion(jl.systems.n_link_pendulum(9))  # 9 > UNROLL_MAX: LAPACK calls
+
+    def one(q, qd):
+        return field(0.0, (q, qd), None)
+
+    q = 0.3 * jnp.sin(jnp.arange(36.0)).reshape(4, 9)
+    qd = jnp.cos(jnp.arange(36.0)).reshape(4, 9)
+    run = lanes.lanewise(one, q[0], qd[0])
+
+    @jax.jit
+    def by_columns(q, qd):
+        out = run(lanes.columns(q), lanes.columns(qd))
+        return [jnp.stack([jnp.broadcast_to(e, (4,)) for e in part], axis=1) for part in out]
+
+    for got, expected in zip(by_columns(q, qd), jax.vmap(one)(q, qd)):
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)

@@ -135,6 +135,36 @@ def _pad(operand, padding_value, padding_config):
     return out
 
 
+def _cholesky(a):
+    """Lower Cholesky factor by the textbook recurrence on entries (zeros above the diagonal)."""
+    n = a.shape[0]
+    low = np.empty((n, n), dtype=object)
+    low[...] = 0.0
+    for j in range(n):
+        low[j, j] = jnp.sqrt(a[j, j] - _sum([low[j, k] * low[j, k] for k in range(j)] or [0.0]))
+        for i in range(j + 1, n):
+            low[i, j] = (a[i, j] - _sum([low[i, k] * low[j, k] for k in range(j)] or [0.0])) / low[j, j]
+    return low
+
+
+def _triangular_solve(a, b, left_side, lower, transpose_a, unit_diagonal, **_):
+    """``op(a) x = b`` (``left_side``) or ``x op(a) = b`` by substitution on entries."""
+    if a.ndim != 2 or b.ndim != 2:
+        raise NotImplementedError("batched triangular_solve")
+    matrix, is_lower = (a.T, not lower) if transpose_a else (a, lower)
+    if not left_side:  # x A = b  <=>  Aᵀ xᵀ = bᵀ
+        return _triangular_solve(matrix.T, b.T, True, not is_lower, False, unit_diagonal).T
+    n, k = b.shape
+    x = np.empty((n, k), dtype=object)
+    order = range(n) if is_lower else range(n - 1, -1, -1)
+    for col in range(k):
+        for i in order:
+            known = range(i) if is_lower else range(i + 1, n)
+            value = b[i, col] - _sum([matrix[i, j] * x[j, col] for j in known] or [0.0])
+            x[i, col] = value if unit_diagonal else value / matrix[i, i]
+    return x
+
+
 def _structural(name, params, operands):
     x = operands[0] if operands else None
     if name == "slice":
@@ -157,6 +187,8 @@ def _structural(name, params, operands):
         return np.concatenate(operands, axis=params["dimension"])
     if name == "stack":
         return np.stack(operands, axis=params.get("axis", 0))
+    if name == "unstack":
+        return [np.array(part) for part in np.moveaxis(x, params.get("axis", 0), 0)]
     if name == "split":
         return list(np.split(x, np.cumsum(params["sizes"])[:-1], axis=params["axis"]))
     if name == "rev":
@@ -171,6 +203,23 @@ def _structural(name, params, operands):
         return constant(values)
     if name == "dot_general":
         return _dot_general(*operands, **params)
+    if name in ("cumsum", "cumprod", "cummax", "cummin"):
+        combine = {"cumsum": operator.add, "cumprod": operator.mul,
+                   "cummax": jnp.maximum, "cummin": jnp.minimum}[name]
+        axis, out = params["axis"], np.array(x, dtype=object)
+        moved = np.moveaxis(out, axis, 0)  # a view: writing it fills ``out``
+        order = range(moved.shape[0] - 2, -1, -1) if params.get("reverse") else range(1, moved.shape[0])
+        for i in order:
+            previous = i + 1 if params.get("reverse") else i - 1
+            for index in np.ndindex(*moved.shape[1:]):
+                moved[(i,) + index] = combine(moved[(previous,) + index], moved[(i,) + index])
+        return out
+    if name == "cholesky":
+        if x.ndim != 2:
+            raise NotImplementedError("batched cholesky")
+        return _cholesky(x)
+    if name == "triangular_solve":
+        return _triangular_solve(*operands, **params)
     if name == "reduce_sum":
         return _reduce(operator.add, x, tuple(params["axes"]))
     if name == "reduce_max":
@@ -181,8 +230,9 @@ def _structural(name, params, operands):
 
 
 _STRUCTURAL = frozenset("""
-slice squeeze expand_dims reshape broadcast_in_dim transpose concatenate stack split rev pad iota
-dot_general reduce_sum reduce_max reduce_min
+slice squeeze expand_dims reshape broadcast_in_dim transpose concatenate stack unstack split rev pad
+iota
+dot_general reduce_sum reduce_max reduce_min cumsum cumprod cummax cummin cholesky triangular_solve
 """.split())
 
 
