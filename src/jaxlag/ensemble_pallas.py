@@ -14,10 +14,12 @@ first, so that constants the equations create or close over become kernel inputs
 may not capture arrays). Whether a given system's equations
 lower to a GPU kernel (Triton / Mosaic GPU) depends on the operations autodiff produced; when they
 do not, :func:`~jaxlag.ensemble_entry.run_ensemble` catches the lowering error, warns and uses the
-XLA loop. (Checked with ``jax.export`` for CUDA: the double pendulum's kernel stops at Triton's
-missing ``slice`` lowering, the vmapped equations operating on ``(block, n)`` arrays; a
-lane-wise evaluation of the per-member jaxpr, one 1-D column per entry, is the way to make it
-lower.) With ``interpret=True`` (``backend="pallas-interpret"``) the kernel runs in Pallas's
+XLA loop. When all members share their save times the kernel is *lane-wise*
+(:func:`_lanes_integrate`, :mod:`jaxlag.lanes`): every state entry and parameter is a 1-D column
+and the step of one member is evaluated on columns as elementwise code, which is what the Triton
+lowering accepts (checked with ``jax.export`` for CUDA, float64: double pendulum, constrained
+pendulum, knife edge); otherwise the kernel works on ``(block, n)`` arrays (Triton has no
+``slice`` lowering for those). With ``interpret=True`` (``backend="pallas-interpret"``) the kernel runs in Pallas's
 interpreter on any backend: that is how CI checks it on CPU.
 
 Derivatives: the kernel is a ``jax.custom_jvp`` whose tangent rule differentiates the XLA loop
