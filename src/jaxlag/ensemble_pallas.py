@@ -19,8 +19,8 @@ XLA loop. When all members share their save times the kernel is *lane-wise*
 and the step of one member is evaluated on columns as elementwise code, which is what the Triton
 lowering accepts (checked with ``jax.export`` for CUDA, float64: double pendulum, constrained
 pendulum, knife edge); otherwise the kernel works on ``(block, n)`` arrays (Triton has no
-``slice`` lowering for those). With ``interpret=True`` (``backend="pallas-interpret"``) the kernel runs in Pallas's
-interpreter on any backend: that is how CI checks it on CPU.
+``slice`` lowering for those). With ``interpret=True`` (``backend="pallas-interpret"``) the
+kernel runs in Pallas's interpreter on any backend: that is how CI checks it on CPU.
 
 Derivatives: the kernel is a ``jax.custom_jvp`` whose tangent rule differentiates the XLA loop
 (the same discrete scheme), so ``jax.jvp``/``jax.grad`` work and give the XLA loop's derivatives.
