@@ -269,9 +269,10 @@ def test_vmap_over_the_ensemble_call():
 def test_auto_is_vmap_on_cpu_and_unchanged():
     ts = jnp.linspace(0.0, 1.0, 3)
     q0, qd0 = double_states(2)
-    auto = jl.simulate_batch(DOUBLE, q0, qd0, ts, stepsize_controller=CONSTANT, dt0=0.05)
-    vmapped = jl.simulate_batch(DOUBLE, q0, qd0, ts, stepsize_controller=CONSTANT, dt0=0.05,
-                                method="vmap")
+    auto = jl.simulate_batch(OSCILLATOR, q0[:, :1], qd0[:, :1], ts, args={"w": 2.0},
+                             stepsize_controller=CONSTANT, dt0=0.05)
+    vmapped = jl.simulate_batch(OSCILLATOR, q0[:, :1], qd0[:, :1], ts, args={"w": 2.0},
+                                stepsize_controller=CONSTANT, dt0=0.05, method="vmap")
     np.testing.assert_array_equal(auto.q, vmapped.q)
 
 
