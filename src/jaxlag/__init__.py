@@ -7,6 +7,7 @@ compiled, differentiable diffrax simulation. Sign convention everywhere:
 
 from . import analysis, contact, coordinates, loads, rotations, systems
 from .batch import batch_sharding, simulate_batch
+from .ensemble import RK4
 from .conventions import UserFunction
 from .events import Event, EventLog, multiplier_limit
 from .failures import SimulationError
@@ -39,6 +40,7 @@ __all__ = [
     "Positive",
     "ProjectedSolver",
     "Projection",
+    "RK4",
     "SimulationError",
     "System",
     "Trajectory",

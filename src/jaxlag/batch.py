@@ -12,6 +12,11 @@ caveat of ``vmap``-ed adaptive solvers: the batched solver loop runs until the *
 has finished (finished members are masked), so a batch costs ``B ×`` the largest step count in
 it. Group members of similar stiffness, or use a constant step.
 
+With ``method="ensemble"`` the batch is instead an array axis of one batched Runge–Kutta loop
+(:mod:`jaxlag.ensemble`): no per-member solver loop, each member with its own step size when
+adaptive; ``method="auto"`` (the default) uses it on accelerators for constant steps and keeps
+``vmap`` everywhere else (always on CPU).
+
 Sharding uses JAX's own machinery. With ``sharding="auto"`` the batch axis is split over every
 device of ``jax.devices()`` (a 1-D :class:`jax.sharding.Mesh` named ``"batch"``): batched inputs
 are placed with ``jax.device_put(x, NamedSharding(mesh, P("batch")))``, shared inputs are
@@ -44,6 +49,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from . import failures
 from .checks import _is_concrete
 from .conventions import as_array_leaves, as_float_state
+from .ensemble_entry import ensemble_by_default as _ensemble_by_default
+from .ensemble_entry import run_ensemble
 from .simulate import simulate
 from .system import System
 from .trajectory import Trajectory
@@ -166,6 +173,8 @@ def simulate_batch(
     args: Any = None,
     args_axes: Any = None,
     sharding: Any = None,
+    method: str = "auto",
+    backend: str = "auto",
     **simulate_kwargs: Any,
 ) -> Trajectory:
     """Simulate a batch of initial states and/or parameters in one compiled, vmapped call.
@@ -184,6 +193,16 @@ def simulate_batch(
       ``jax.devices()``), a :class:`jax.sharding.Mesh` (split over all its axes) or a
       :class:`jax.sharding.NamedSharding` whose spec's first entry splits the batch axis. The
       batch is padded to a multiple of the number of shards and un-padded on return.
+    - ``method``: ``"vmap"`` (``jax.vmap`` of :func:`~jaxlag.simulate`: every option, events,
+      unilateral constraints), ``"ensemble"`` (one batched Runge–Kutta loop for the whole batch,
+      :mod:`jaxlag.ensemble`: explicit tableau solvers, constant or PID steps; ``ts`` may then
+      also be per member, ``(B, T)``) or ``"auto"`` (default): ``"ensemble"`` on an accelerator
+      (GPU/TPU) for constant steps whose step divides the save intervals (the result equals the
+      vmap one to rounding), ``"vmap"`` otherwise, in particular always on CPU.
+    - ``backend`` (``method="ensemble"`` only): ``"xla"`` (the loop as XLA ops), ``"pallas"``
+      (one fused Pallas kernel, constant steps; falls back to ``"xla"`` with a warning if the
+      equations do not lower), ``"pallas-interpret"`` (the kernel in Pallas's interpreter, for
+      testing on CPU), or ``"auto"`` (``"xla"``; see the README for why).
     - ``simulate_kwargs``: every keyword of :func:`~jaxlag.simulate` (``solver``,
       ``stepsize_controller``, ``dt0``, ``saveat``, ``max_steps``, ``adjoint``, ``projection``,
       ``baumgarte``, ``events``, ``max_segments``, ...), applied to every member.
@@ -221,6 +240,8 @@ def simulate_batch(
                 f"args{jax.tree_util.keystr(path)} is marked batched by args_axes but is a scalar."
             )
         sizes[f"args{jax.tree_util.keystr(path)}"] = shape[0]
+    if ts is not None and jnp.ndim(ts) == 2:  # per-member save times (method="ensemble")
+        sizes["ts"] = jnp.shape(ts)[0]
     if not sizes:
         raise ValueError(
             "Nothing to batch: give q0 or qd0 of shape (B, n), or mark args leaves with args_axes."
@@ -231,8 +252,14 @@ def simulate_batch(
     if size == 0:
         raise ValueError("The batch is empty (B = 0).")
 
+    if method not in ("auto", "vmap", "ensemble"):
+        raise ValueError(f"method must be 'auto', 'vmap' or 'ensemble'; got {method!r}.")
+    if method == "auto":
+        method = "ensemble" if _ensemble_by_default(system, ts, simulate_kwargs) else "vmap"
     if ts is not None:
         ts = jnp.asarray(ts, dtype=q0.dtype)
+        if ts.ndim == 2 and method == "vmap":
+            raise ValueError(f"Per-member save times ts of shape {ts.shape} need method='ensemble'.")
 
     out_sharding, pad = None, 0
     if sharding is not None:
@@ -252,7 +279,14 @@ def simulate_batch(
         batched_args = jax.tree.map(place_batched, batched_args)
         shared_args = jax.tree.map(place_shared, shared_args)
         if ts is not None:
-            ts = place_shared(ts)
+            ts = place_batched(ts) if ts.ndim == 2 else place_shared(ts)
+
+    if method == "ensemble":
+        out = run_ensemble(system, q0, qd0, ts, batched_args, shared_args, size + pad,
+                           simulate_kwargs, out_sharding, backend)
+        if pad:
+            out = jax.tree.map(lambda x: x[:size] if isinstance(x, jax.Array) else x, out)
+        return out
 
     # Members fail on their own (traj.failure per member); the batch raises once, below, naming
     # the failed members, or not at all with throw=False.

@@ -1,0 +1,354 @@
+"""The ensemble integrator (simulate_batch(method="ensemble")): one loop for the whole batch.
+
+Checked against diffrax per member (same tableau, constant steps), against closed forms and
+jl.simulate (adaptive), on the constraint manifold, in Pallas's interpreter, under jit/vmap/grad,
+with gradients against central differences, and sharded over two (forced host) devices.
+"""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import jaxlag as jl
+
+jax.config.update("jax_enable_x64", True)
+
+CONSTANT = diffrax.ConstantStepSize()
+
+
+def oscillator(q, qd, args):
+    return 0.5 * qd[0] ** 2 - 0.5 * args["w"] ** 2 * q[0] ** 2
+
+
+OSCILLATOR = jl.System(oscillator)
+DOUBLE = jl.systems.double_pendulum()
+
+
+def cartesian_pendulum(q, qd, args):
+    return 0.5 * (qd[0] ** 2 + qd[1] ** 2) - args["g"] * q[1]
+
+
+def rod(q, args):
+    return jnp.array([q[0] ** 2 + q[1] ** 2 - args["l"] ** 2])
+
+
+PENDULUM_XY = jl.System(cartesian_pendulum, holonomic=rod)
+LENGTHS = jnp.array([0.5, 1.0, 2.0])
+ANGLES = jnp.array([0.3, 1.2, 2.5])
+
+
+def on_rod():
+    q0 = jnp.stack([LENGTHS * jnp.sin(ANGLES), -LENGTHS * jnp.cos(ANGLES)], axis=1)
+    qd0 = jnp.stack([LENGTHS * jnp.cos(ANGLES), LENGTHS * jnp.sin(ANGLES)], axis=1) * 0.7
+    return q0, qd0
+
+
+def double_states(batch):
+    s = jnp.linspace(0.0, 1.0, batch)
+    return (jnp.stack([2.0 - 1.5 * s, -0.5 + jnp.sin(7.0 * s)], axis=1),
+            jnp.stack([0.3 * jnp.cos(5.0 * s), -1.1 + 0.5 * s], axis=1))
+
+
+@pytest.mark.parametrize("solver", [diffrax.Tsit5(), jl.RK4()], ids=["Tsit5", "RK4"])
+def test_constant_steps_equal_diffrax_per_member(solver):
+    q0, qd0 = double_states(3)
+    ts = jnp.linspace(0.0, 1.0, 5)
+    options = dict(solver=solver, stepsize_controller=CONSTANT, dt0=0.01)
+    batch = jl.simulate_batch(DOUBLE, q0, qd0, ts, method="ensemble", **options)
+    assert batch.q.shape == (3, 5, 2) and batch.t.shape == (3, 5)
+    np.testing.assert_array_equal(batch.stats["num_steps"], [100, 100, 100])
+    for i in range(3):
+        single = jl.simulate(DOUBLE, q0[i], qd0[i], ts, **options)  # diffrax.diffeqsolve
+        np.testing.assert_allclose(batch.q[i], single.q, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(batch.qd[i], single.qd, rtol=0, atol=1e-12)
+
+
+@settings(max_examples=6, deadline=None)
+@given(st.lists(st.floats(-2.5, 2.5), min_size=12, max_size=12))
+def test_random_members_equal_diffrax_and_conserve_energy(values):
+    # Same shapes as the test above: one compiled program for every example.
+    x = jnp.asarray(values).reshape(3, 4)
+    q0, qd0 = x[:, :2], x[:, 2:]
+    ts = jnp.linspace(0.0, 1.0, 5)
+    options = dict(solver=diffrax.Tsit5(), stepsize_controller=CONSTANT, dt0=0.01)
+    batch = jl.simulate_batch(DOUBLE, q0, qd0, ts, method="ensemble", **options)
+    single = jl.simulate(DOUBLE, q0[0], qd0[0], ts, **options)
+    np.testing.assert_allclose(batch.q[0], single.q, rtol=0, atol=1e-12)
+    energy = batch.energy
+    # Tsit5 at h = 0.01: local error ~ h⁶ |y⁽⁶⁾|, energy drift well below 1e-6 relative.
+    assert jnp.max(jnp.abs(energy - energy[:, :1])) <= 1e-6 * (1 + jnp.max(jnp.abs(energy)))
+
+
+def test_adaptive_members_take_their_own_steps_and_match_the_closed_form():
+    ws = jnp.array([1.0, 50.0])
+    ts = jnp.linspace(0.0, 2.0, 9)
+    tol = 1e-8
+    batch = jl.simulate_batch(
+        OSCILLATOR, jnp.ones((2, 1)), jnp.zeros((2, 1)), ts, args={"w": ws}, args_axes=0,
+        method="ensemble", stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol))
+    dopri = jl.simulate_batch(
+        OSCILLATOR, jnp.ones((2, 1)), jnp.zeros((2, 1)), ts, args={"w": ws}, args_axes=0,
+        method="ensemble", solver=diffrax.Dopri5(),
+        stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol))
+    exact = jnp.cos(ws[:, None] * ts)
+    assert jnp.max(jnp.abs(dopri.q[0, :, 0] - exact[0])) < 10 * tol
+    assert jnp.max(jnp.abs(dopri.q[1, :, 0] - exact[1])) < 200 * tol
+    error = jnp.max(jnp.abs(batch.q[..., 0] - exact), axis=1)
+    steps = np.asarray(batch.stats["num_accepted_steps"])
+    print("accepted steps per member (w = 1, 50):", steps,
+          "rejected:", np.asarray(batch.stats["num_rejected_steps"]), "max error:", error)
+    assert steps[1] > 10 * steps[0]
+    # Global error ≈ tolerance × the number of steps (local errors add up); 100 periods at w = 50.
+    assert error[0] < 10 * tol and error[1] < 200 * tol
+    for i in range(2):
+        single = jl.simulate(OSCILLATOR, jnp.ones(1), jnp.zeros(1), ts, args={"w": ws[i]},
+                             stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol))
+        assert jnp.max(jnp.abs(batch.q[i] - single.q)) < 2 * max(error[i], tol) + 1e-12
+
+
+def test_constrained_members_stay_on_the_manifold():
+    q0, qd0 = on_rod()
+    ts = jnp.linspace(0.0, 3.0, 7)
+    args = {"g": 9.81, "l": LENGTHS}
+    for controller, dt0 in ((diffrax.PIDController(rtol=1e-9, atol=1e-9), None), (CONSTANT, 0.01)):
+        batch = jl.simulate_batch(PENDULUM_XY, q0, qd0, ts, args=args, args_axes={"l": 0, "g": None},
+                                  method="ensemble", stepsize_controller=controller, dt0=dt0)
+        f, f_dot, _ = batch.constraint_residuals
+        assert jnp.max(jnp.abs(f)) <= 1e-10 and jnp.max(jnp.abs(f_dot)) <= 1e-10
+        if dt0 is not None:  # same steps, same projection: diffrax's result to rounding
+            for i in range(3):
+                single = jl.simulate(PENDULUM_XY, q0[i], qd0[i], ts, dt0=dt0,
+                                     args={"g": 9.81, "l": LENGTHS[i]}, stepsize_controller=controller)
+                np.testing.assert_allclose(batch.q[i], single.q, rtol=0, atol=1e-12)
+
+
+def test_second_call_with_new_values_does_not_recompile():
+    from test_batch import CompileCounter
+
+    ts = jnp.linspace(0.0, 1.0, 3)
+    options = dict(args_axes=0, method="ensemble", stepsize_controller=CONSTANT, dt0=0.01)
+    jl.simulate_batch(OSCILLATOR, jnp.ones((2, 1)), jnp.zeros((2, 1)), ts,
+                      args={"w": jnp.array([1.0, 2.0])}, **options)
+    q0, qd0, ws = jnp.full((2, 1), 0.5, dtype=jnp.float64), jnp.zeros((2, 1)), jnp.array([3.0, 4.0])
+    with CompileCounter() as counter:
+        again = jl.simulate_batch(OSCILLATOR, q0, qd0, ts, args={"w": ws}, **options)
+    assert counter.count == 0
+    np.testing.assert_allclose(again.q[:, -1, 0], 0.5 * jnp.cos(jnp.array([3.0, 4.0])), atol=1e-9)
+
+
+def test_velocity_constraints_knife_edge_matches_the_closed_form():
+    skate = jl.systems.knife_edge()
+    omegas = jnp.array([1.0, 2.0])
+    ts = jnp.linspace(0.0, 2.0, 5)
+    qd0 = jnp.stack([jnp.zeros(2), jnp.zeros(2), omegas], axis=1)
+    batch = jl.simulate_batch(skate, jnp.zeros(3), qd0, ts, method="ensemble",
+                              stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10))
+    p = jl.systems.knife_edge.defaults
+    scale = p["g"] * np.sin(p["alpha"]) / (2 * omegas[:, None] ** 2)
+    wt = omegas[:, None] * ts
+    np.testing.assert_allclose(batch.q[..., 0], scale * jnp.sin(wt) ** 2, atol=1e-8)
+    np.testing.assert_allclose(batch.q[..., 1], scale * (wt - 0.5 * jnp.sin(2 * wt)), atol=1e-8)
+    _, _, g = batch.constraint_residuals
+    assert jnp.max(jnp.abs(g)) <= 1e-10
+
+
+def test_per_member_save_times_and_shared_initial_state():
+    ts = jnp.array([[0.0, 0.5, 1.0], [0.0, 0.25, 2.0]])
+    batch = jl.simulate_batch(OSCILLATOR, jnp.ones(1), jnp.zeros(1), ts, args={"w": 2.0},
+                              method="ensemble",
+                              stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10))
+    np.testing.assert_array_equal(batch.t, ts)
+    np.testing.assert_allclose(batch.q[..., 0], jnp.cos(2.0 * ts), atol=1e-8)
+
+
+def test_pallas_interpret_equals_the_xla_loop(monkeypatch):
+    import jaxlag.ensemble_pallas as kernel
+
+    monkeypatch.setattr(kernel, "BLOCK", 2)  # 3 members: two programs, one padded member
+    lanewise = []
+    original = kernel._lanes_integrate
+    monkeypatch.setattr(kernel, "_lanes_integrate",
+                        lambda *a, **k: lanewise.append(1) or original(*a, **k))
+    q0, qd0 = on_rod()
+    args = {"g": 9.81, "l": LENGTHS}
+    options = dict(args=args, args_axes={"l": 0, "g": None}, method="ensemble",
+                   stepsize_controller=CONSTANT, dt0=0.05)
+    # Shared save times: the lane-wise kernel (KKT solve and projection as column code);
+    # per-member save times: the kernel on (block, n) arrays.
+    for ts in (jnp.linspace(0.0, 1.0, 3), jnp.array([[0.0, 0.5, 1.0], [0.0, 0.3, 1.0], [0.0, 0.5, 0.9]])):
+        xla = jl.simulate_batch(PENDULUM_XY, q0, qd0, ts, backend="xla", **options)
+        pallas = jl.simulate_batch(PENDULUM_XY, q0, qd0, ts, backend="pallas-interpret", **options)
+        np.testing.assert_allclose(pallas.q, xla.q, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(pallas.qd, xla.qd, rtol=0, atol=1e-14)
+        np.testing.assert_array_equal(pallas.stats["num_steps"], xla.stats["num_steps"])
+    assert len(lanewise) == 1
+    if jax.default_backend() == "cpu":  # no compiled Pallas on CPU: a warning and the XLA loop
+        with pytest.warns(RuntimeWarning, match="did not lower.*XLA loop"):
+            fallback = jax.jit(lambda q: jl.simulate_batch(PENDULUM_XY, q, qd0, ts, backend="pallas",
+                                                           **options).q)(q0)
+        np.testing.assert_array_equal(fallback, xla.q)
+
+
+def test_gradients_match_closed_form_and_central_differences():
+    ts = jnp.linspace(0.0, 1.0, 3)
+    adaptive = diffrax.PIDController(rtol=1e-10, atol=1e-10)
+
+    def loss(w, controller, adjoint=None):
+        traj = jl.simulate_batch(OSCILLATOR, jnp.ones((2, 1)), jnp.zeros((2, 1)), ts,
+                                 args={"w": w}, args_axes=0, method="ensemble", max_steps=500,
+                                 stepsize_controller=controller, adjoint=adjoint,
+                                 dt0=0.01 if controller is CONSTANT else None)
+        return jnp.sum(traj.q[..., 0] ** 2 * jnp.array([0.0, 2.0, 1.0]))  # every save counts
+
+    w = jnp.array([1.0, 3.0])
+    # d/dw Σ_k c_k cos²(w t_k) = −Σ_k c_k t_k sin(2 w t_k), t = (0, 0.5, 1), c = (0, 2, 1)
+    exact = -(2.0 * 0.5 * jnp.sin(w) + jnp.sin(2 * w))
+    eps = 1e-5
+    for controller in (CONSTANT, adaptive):
+        fd = jnp.array([(loss(w.at[i].add(eps), controller) - loss(w.at[i].add(-eps), controller))
+                        / (2 * eps) for i in range(2)])
+        # reverse: scan of checkpointed steps / equinox's checkpointed while loop
+        reverse = jax.jit(jax.grad(loss), static_argnums=1)(w, controller)
+        # forward: jvp through the scan / the lax while loop
+        forward = jax.jacfwd(loss)(w, controller, diffrax.ForwardMode())
+        print(type(controller).__name__, "reverse", reverse, "forward", forward, "central", fd,
+              "exact", exact)
+        np.testing.assert_allclose(reverse, exact, rtol=1e-7)
+        # Adaptive: central differences also see the step sizes change with w (O(tol / eps)).
+        np.testing.assert_allclose(reverse, fd, rtol=1e-8 if controller is CONSTANT else 1e-5)
+        np.testing.assert_allclose(forward, reverse, rtol=1e-11)
+
+
+def scaled_oscillator(q, qd, args):
+    # Builds an array from Python floats while tracing (as jl.systems' models do with their
+    # masses): inside the Pallas kernel such constants must become kernel inputs.
+    weights = jnp.stack([1.0, 0.5])
+    return weights[1] * qd[0] ** 2 - weights[1] * args["w"] ** 2 * q[0] ** 2 * weights[0]
+
+
+def test_pallas_kernel_is_differentiable():
+    system = jl.System(scaled_oscillator)
+    ts = jnp.linspace(0.0, 1.0, 3)
+
+    def loss(w, backend):
+        traj = jl.simulate_batch(system, jnp.ones((2, 1)), jnp.zeros((2, 1)), ts,
+                                 args={"w": w}, args_axes=0, method="ensemble", backend=backend,
+                                 stepsize_controller=CONSTANT, dt0=0.05)
+        return jnp.sum(traj.q[:, -1] ** 2)
+
+    w = jnp.array([1.0, 2.0])
+    np.testing.assert_allclose(loss(w, "pallas-interpret"), loss(w, "xla"), rtol=1e-14)
+    pallas = jax.jit(jax.grad(loss), static_argnums=1)(w, "pallas-interpret")
+    exact = -2 * jnp.cos(w) * jnp.sin(w)  # d/dw cos²(w t) at t = 1
+    np.testing.assert_allclose(pallas, jax.grad(loss)(w, "xla"), rtol=1e-12)
+    np.testing.assert_allclose(pallas, exact, rtol=1e-6)
+
+
+def test_vmap_over_the_ensemble_call():
+    ts = jnp.linspace(0.0, 1.0, 3)
+
+    def run(w):
+        return jl.simulate_batch(OSCILLATOR, jnp.ones((2, 1)), jnp.zeros((2, 1)), ts,
+                                 args={"w": jnp.stack([w, 2 * w])}, args_axes=0, method="ensemble",
+                                 stepsize_controller=CONSTANT, dt0=0.01).q[..., 0]
+
+    out = jax.vmap(run)(jnp.array([1.0, 3.0]))
+    ws = jnp.array([[1.0, 2.0], [3.0, 6.0]])
+    np.testing.assert_allclose(out, jnp.cos(ws[..., None] * ts), atol=1e-9)
+
+
+def test_auto_is_vmap_on_cpu_and_unchanged():
+    ts = jnp.linspace(0.0, 1.0, 3)
+    q0, qd0 = double_states(2)
+    auto = jl.simulate_batch(OSCILLATOR, q0[:, :1], qd0[:, :1], ts, args={"w": 2.0},
+                             stepsize_controller=CONSTANT, dt0=0.05)
+    vmapped = jl.simulate_batch(OSCILLATOR, q0[:, :1], qd0[:, :1], ts, args={"w": 2.0},
+                                stepsize_controller=CONSTANT, dt0=0.05, method="vmap")
+    np.testing.assert_array_equal(auto.q, vmapped.q)
+
+
+def test_bad_input_gets_a_clear_error():
+    ts = jnp.linspace(0.0, 1.0, 3)
+    q0, qd0 = double_states(2)
+    with pytest.raises(TypeError, match="Butcher tableau.*method='vmap'"):
+        jl.simulate_batch(DOUBLE, q0, qd0, ts, method="ensemble", solver=diffrax.ReversibleHeun(),
+                          stepsize_controller=CONSTANT, dt0=0.1)
+    with pytest.raises(ValueError, match="Event.*method='vmap'"):
+        jl.simulate_batch(DOUBLE, q0, qd0, ts, method="ensemble",
+                          events=[jl.Event(lambda q, qd: q[0])])
+    sphere = jl.systems.particle_on_sphere(unilateral=True)
+    with pytest.raises(ValueError, match="unilateral.*method='vmap'"):
+        jl.simulate_batch(sphere, jnp.array([[2.0, 0.1]]), jnp.zeros((1, 2)), ts,
+                          method="ensemble")
+    with pytest.raises(ValueError, match="no error estimate"):
+        jl.simulate_batch(DOUBLE, q0, qd0, ts, method="ensemble", solver=jl.RK4())
+    with pytest.raises(ValueError, match="need 1000 steps, more than max_steps=10"):
+        jl.simulate_batch(DOUBLE, q0, qd0, ts, method="ensemble", stepsize_controller=CONSTANT,
+                          dt0=1e-3, max_steps=10)
+    ones = jnp.ones((2, 1))
+    with pytest.raises(Exception, match="max_steps=5"):
+        jl.simulate_batch(OSCILLATOR, ones, ones, ts, args={"w": 1.0}, method="ensemble",
+                          max_steps=5)
+    partial = jl.simulate_batch(OSCILLATOR, ones, ones, ts, args={"w": 1.0}, method="ensemble",
+                                max_steps=5, throw=False)
+    assert not jnp.any(partial.result == diffrax.RESULTS.successful)
+    assert jnp.all(partial.stats["num_steps"] == 5)
+    with pytest.raises(ValueError, match="method must be"):
+        jl.simulate_batch(DOUBLE, q0, qd0, ts, method="loop")
+
+
+def test_sharded_over_two_devices_equals_unsharded():
+    code = textwrap.dedent("""
+        import jax, jax.numpy as jnp, numpy as np, diffrax
+        jax.config.update("jax_enable_x64", True)
+        import jaxlag as jl
+        assert len(jax.devices()) == 2
+        system = jl.systems.simple_pendulum()
+        q0 = jnp.linspace(0.1, 3.0, 4)[:, None]
+        qd0 = jnp.zeros((4, 1))
+        ts = jnp.linspace(0.0, 1.0, 3)
+        for controller, dt0 in ((diffrax.PIDController(rtol=1e-9, atol=1e-9), None),):
+            kw = dict(method="ensemble", stepsize_controller=controller, dt0=dt0)
+            one = jl.simulate_batch(system, q0, qd0, ts, **kw)
+            two = jl.simulate_batch(system, q0, qd0, ts, sharding="auto", **kw)
+            assert len(two.q.sharding.device_set) == 2, two.q.sharding
+            np.testing.assert_allclose(two.q, one.q, rtol=0, atol=1e-12)
+        print("ok")
+    """)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+               PYTHONPATH=os.pathsep.join(sys.path))
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=600)
+    assert out.returncode == 0 and "ok" in out.stdout, out.stderr[-3000:]
+
+
+def test_lanewise_equations_equal_vmap_for_a_nine_link_chain():
+    # Cumulative sums, unstacking and the Cholesky-based solve of an n = 9 mass matrix, all as
+    # column code (what the Pallas kernel runs).
+    from jaxlag import lanes
+
+    field = jl.EquationsOfMotion(jl.systems.n_link_pendulum(9))  # 9 > UNROLL_MAX: LAPACK calls
+
+    def one(q, qd):
+        return field(0.0, (q, qd), None)
+
+    q = 0.3 * jnp.sin(jnp.arange(36.0)).reshape(4, 9)
+    qd = jnp.cos(jnp.arange(36.0)).reshape(4, 9)
+    run = lanes.lanewise(one, q[0], qd[0])
+
+    @jax.jit
+    def by_columns(q, qd):
+        out = run(lanes.columns(q), lanes.columns(qd))
+        return [jnp.stack([jnp.broadcast_to(e, (4,)) for e in part], axis=1) for part in out]
+
+    for got, expected in zip(by_columns(q, qd), jax.vmap(one)(q, qd)):
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
