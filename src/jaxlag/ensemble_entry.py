@@ -159,7 +159,8 @@ def _run_impl(system, q0, qd0, ts, batched_args, shared_args, settings, dt0, gri
     args = eqx.combine(batched_args, args)
     system_arrays, system_static = eqx.partition(system, eqx.is_array)
     system_arrays = _broadcast_members(system_arrays, batch)
-    out = Trajectory(t, q, qd, args, stats, result, system_arrays, None, None, system_static)
+    out = Trajectory(t, q, qd, args, stats, result, system_arrays, active=None, events=None,
+                     failure=None, system_static=system_static)
     if out_sharding is not None:
         out = jax.tree.map(
             lambda x: jax.lax.with_sharding_constraint(x, out_sharding)
