@@ -186,7 +186,8 @@ def test_memory_grows_linearly_in_the_batch(kind):
     member's saved outputs need.
 
     How exact "linearly" can be checked depends on the backend. On CPU the bytes per added member
-    are the same from B = 16 → 32 as from 32 → 64 (measured exactly equal: 892 B and 2504 B). On a
+    are the same from B = 16 → 32 as from 32 → 64 up to buffer alignment (892 B both; 2652 B and
+    2646 B with events and the per-member failure record). On a
     GPU XLA picks fusions, reduction tilings and their scratch buffers per shape, which adds to the
     temporaries a term that changes with B but not in proportion to it (the exact CPU check failed
     on an H100). There only the properties that do not depend on those choices are asserted: the
@@ -224,8 +225,13 @@ def test_memory_grows_linearly_in_the_batch(kind):
         per_member_low = (total[32] - total[16]) / 16
         per_member_high = (total[64] - total[32]) / 32
         assert per_member_low > 0
-        assert per_member_high == per_member_low, (per_member_low, per_member_high)
-        assert per_member_high < 20 * saved  # measured: 892 B (5.3×) and 2504 B (7.5×)
+        # Linear up to XLA's 64-byte buffer alignment: padding depends on how many small (scalar
+        # per member) buffers a batch needs, a few hundred bytes in all, not on B. Measured:
+        # 892 B == 892 B unconstrained; 2652 B vs 2646 B with events (second difference 192 B).
+        second_difference = (total[64] - total[32]) - 2 * (total[32] - total[16])
+        assert abs(second_difference) <= 0.01 * (total[64] - total[32]), (per_member_low,
+                                                                           per_member_high)
+        assert per_member_high < 20 * saved  # measured: 892 B (5.3×) and 2646 B (7.9×)
     else:
         for batch in sizes[1:]:
             added = batch - 16

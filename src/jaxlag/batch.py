@@ -303,12 +303,28 @@ def simulate_batch(
     if pad:
         out = jax.tree.map(lambda x: x[:size] if isinstance(x, jax.Array) else x, out)
     if throw and out.failure is not None:
-        if _is_concrete(out.failure):
+        if not _is_concrete(out.failure):
+            out = eqx.tree_at(lambda tr: tr.q, out, failures.error_if_failed(out.failure, out.q))
+        elif out.failure.code.is_fully_addressable:
             member_args = _member_args(batched_args, shared_args)
             failures.raise_if_failed(out.failure, system, member_args, args_batched=True)
         else:
-            out = eqx.tree_at(lambda tr: tr.q, out, failures.error_if_failed(out.failure, out.q))
+            # Several hosts: each process can read only its own rows; it raises for those.
+            _raise_for_local_members(out.failure)
     return out
+
+
+def _raise_for_local_members(failure) -> None:
+    for shard in failure.code.addressable_shards:
+        codes = np.asarray(shard.data)
+        if np.any(codes != failures.NONE):
+            rows = shard.index[0]
+            bad = [int(i) + (rows.start or 0) for i in np.nonzero(codes != failures.NONE)[0]]
+            raise failures.SimulationError(
+                f"Batch members {bad} (on this process) did not complete: failure codes "
+                f"{codes[codes != failures.NONE].tolist()} (1 non-finite, 2 max_steps, 3 solver, "
+                "4 max_segments, 5 step size collapsed). Pass throw=False and read "
+                "traj.failure.code.addressable_shards (or gather it) for the details.")
 
 
 def _member_args(batched_args, shared_args):
