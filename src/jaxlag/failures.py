@@ -72,8 +72,9 @@ def _guarded_init(controller, terms, t0, t1, y0, dt0, args, func, error_order):
     q, qd = y0
     t0 = jnp.asarray(t0, q.dtype)
     scale = jnp.maximum(jnp.maximum(jnp.abs(t0), jnp.abs(t1)), jnp.abs(t1 - t0))
-    state = GuardState(inner, t0, jnp.asarray(tnext - t0, q.dtype), q, qd, jnp.asarray(False),
-                       jnp.asarray(False), jnp.asarray(scale, q.dtype))
+    record = jax.lax.stop_gradient((t0, jnp.asarray(tnext - t0, q.dtype), q, qd,
+                                    jnp.asarray(scale, q.dtype)))
+    state = GuardState(inner, *record[:4], jnp.asarray(False), jnp.asarray(False), record[4])
     return tnext, state
 
 
@@ -94,8 +95,10 @@ def _guarded_adapt(controller, adaptive, t0, t1, y0, y1_candidate, args, y_error
         fail = ~finite
     keep = keep & ~fail
     result = diffrax.RESULTS.where(fail, diffrax.RESULTS.dt_min_reached, result)
-    new = GuardState(inner, jnp.where(keep, t1, t0).astype(q0.dtype), jnp.asarray(dt, q0.dtype),
-                     q0, qd0, fail, fail & ~finite, state.scale)
+    # The record is for messages, never differentiated: no tangents carried through the loop.
+    record = jax.lax.stop_gradient((jnp.where(keep, t1, t0).astype(q0.dtype),
+                                    jnp.asarray(dt, q0.dtype), q0, qd0))
+    new = GuardState(inner, *record, fail, fail & ~finite, state.scale)
     return keep, tprev, tnext, jump, new, result
 
 
