@@ -210,13 +210,15 @@ def _initial_message(d, fail, static: _Static, where: str = "at the initial stat
             f"(q0 = {np.asarray(d['q'])})."
         )
     if bool(fail.get("not_diagonal", False)):
+        matrix = f":\n{np.asarray(d['mass'])}" if "mass" in d else " (call outside jit to see M)."
         return (
             "The system declares diagonal_mass=True, but M = ∂²L/∂q̇² has off-diagonal "
-            f"entries {where}:\n{np.asarray(d['mass'])}"
+            f"entries {where}" + matrix
         )
     if bool(fail.get("rank", False)):
         m_h = d["f"].shape[0]
-        names = _dependent_rows(np.asarray(d["rows"]), m_h)
+        names = (_dependent_rows(np.asarray(d["rows"]), m_h) if "rows" in d
+                 else ["(call simulate outside jit to see which)"])
         return (
             f"The constraints are redundant or conflicting {where}: the constraint "
             f"Jacobian [J; A] (singular values {np.asarray(d['singular_values'])}) is rank "
@@ -282,7 +284,10 @@ def validate_initial_state(system, q, qd, t, args, tolerance: float | None):
         return q, qd
     failed = jnp.any(jnp.stack([jnp.asarray(x) for x in fail.values()]))
     report = Report(ft.partial(_batched_initial_message, static), ValueError)
-    q = raise_from_program(q, failed, report, (d, fail))
+    # The matrices stay on the device: the compiled message names the problem and its numbers
+    # (eigenvalues, singular values, residuals); the eager call also shows M and the rows.
+    small = {k: v for k, v in d.items() if k not in ("mass", "rows")}
+    q = raise_from_program(q, failed, report, (small, fail))
     return q, qd
 
 
