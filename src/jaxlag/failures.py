@@ -280,8 +280,12 @@ def _fmt(x) -> str:
 
 
 def _singular(eig) -> bool:
+    """The initial-state check's criterion (``checks.MASS_RCOND``, scaled to the dtype)."""
+    from .checks import MASS_RCOND, rcond
+
     eig = np.asarray(eig)
-    return bool(eig.size) and not eig[0] > 1e-12 * max(np.max(np.abs(eig)), 1e-300)
+    threshold = rcond(MASS_RCOND, eig.dtype) if eig.size else 0.0
+    return bool(eig.size) and not eig[0] > threshold * max(np.max(np.abs(eig)), 1e-300)
 
 
 def _x64_hint(dtype) -> str:
@@ -331,8 +335,7 @@ def describe(failure: Failure, system=None, args=None) -> str:
     else:  # COLLAPSED
         msg = (f"The step size collapsed to dt = {dt:.3g} {where}: every step from {state} "
                "was rejected although finite. The solution appears to reach a singularity "
-               "here (a velocity or acceleration blowing up, a mass matrix becoming singular)")
-        msg += "."
+               "here (a velocity or acceleration blowing up, a mass matrix becoming singular).")
     if system is not None:
         msg += " " + _diagnosis(system, failure, args)
     return msg + hint
