@@ -7,6 +7,7 @@ compiled, differentiable diffrax simulation. Sign convention everywhere:
 
 from . import analysis, contact, coordinates, loads, rotations, systems
 from .batch import batch_sharding, simulate_batch
+from .compilation import compiler_options
 from .ensemble import RK4
 from .conventions import UserFunction
 from .events import Event, EventLog, multiplier_limit
@@ -45,6 +46,7 @@ __all__ = [
     "System",
     "Trajectory",
     "UserFunction",
+    "compiler_options",
     "consistent_initial_state",
     "fit",
     "least_squares_loss",

@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from . import compilation
 from . import failures
 from .checks import _is_concrete
 from .conventions import as_array_leaves, as_float_state
@@ -146,7 +147,7 @@ def _constrain(tree, sharding):
     return jax.tree.map(place, tree)
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _run_batch(system, q0, qd0, ts, batched_args, shared_args, q_axis, qd_axis, kwargs,
                out_sharding):
     def one(q, qd, member_args):

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import compilation
 from . import constraints as _constraints
 from .kkt import accelerations_and_multipliers
 from .mechanics import mass_matrix
@@ -61,7 +62,7 @@ def initial_activity(system, q, t, args, tolerance):
     return active
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _diagnostics(system, q, qd, t, args, tolerance):
     """``(values, failures)`` at the initial state, in one compiled call (one host transfer)."""
     values = _diagnostic_values(system, q, qd, t, args, tolerance)

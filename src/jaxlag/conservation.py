@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import compilation
 from . import kkt as _kkt
 from . import mechanics as _mechanics
 from .constraints import constraint_rows
@@ -59,8 +60,8 @@ def energy(system, q, qd, t=0.0, args=None):
     return _energy(system, *_state(q, qd, t, args))
 
 
-_momenta = eqx.filter_jit(_mechanics.momenta)
-_energy = eqx.filter_jit(_mechanics.energy)
+_momenta = compilation.filter_jit(_mechanics.momenta)
+_energy = compilation.filter_jit(_mechanics.energy)
 
 
 # ----------------------------------------------------------------------------- generators
@@ -158,7 +159,7 @@ def noether_charge(system, generator: Callable, q, qd, t=0.0, args=None):
     return _noether_charge(system, generator, *_state(q, qd, t, args))
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _noether_charge(system, generator, q, qd, t, args):
     _, xi = _generator(generator, q, t, args)
     return jnp.dot(_mechanics.momenta(system, q, qd, t, args), xi)
@@ -174,7 +175,7 @@ def noether_rate(system, generator: Callable, q, qd, t=0.0, args=None):
     return _noether_rate(system, generator, *_state(q, qd, t, args))
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _noether_rate(system, generator, q, qd, t, args):
     fn, xi = _generator(generator, q, t, args)
     _, xi_dot = jax.jvp(lambda x, s: jnp.asarray(fn(x, t=s, args=args), q.dtype), (q, t),
@@ -220,7 +221,7 @@ def ignorable_coordinates(
     qs = jnp.concatenate([q[None], q[None] + dq])
     qds = jnp.concatenate([qd[None], qd[None] + dv])
 
-    @jax.jit
+    @compilation.jit
     def measures(x, v):
         tt = _as_time(t, x)
         dl = jax.grad(lambda y: system.lagrangian(y, v, t=tt, args=args))(x)
@@ -262,7 +263,7 @@ def _summarize(values):
     return ConservedQuantity(values, initial, deviation, relative)
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _charges(system, generator, q, qd, t, args):
     return jax.vmap(lambda x, v, s: _noether_charge(system, generator, x, v, s, args))(q, qd, t)
 

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import compilation
 from .checks import _is_concrete
 from .ensemble import (
     as_member_times,
@@ -168,7 +169,7 @@ def _run_impl(system, q0, qd0, ts, batched_args, shared_args, settings, dt0, gri
     return out
 
 
-_run = eqx.filter_jit(_run_impl)
+_run = compilation.filter_jit(_run_impl)
 
 
 def _kernel_lowers(call) -> Exception | None:
@@ -180,7 +181,7 @@ def _kernel_lowers(call) -> Exception | None:
     dynamic, static = eqx.partition(call, eqx.is_array)
     spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)), dynamic)
     try:
-        jax.jit(lambda d: _run_impl(*eqx.combine(d, static))).lower(spec).compile()
+        compilation.jit(lambda d: _run_impl(*eqx.combine(d, static))).lower(spec).compile()
     except Exception as error:  # noqa: BLE001 - any lowering failure: the XLA loop is exact too
         return error
     return None

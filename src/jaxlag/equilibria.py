@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from . import compilation
 from . import constraints as _constraints
 from . import kkt as _kkt
 from . import mechanics as _mechanics
@@ -139,7 +140,7 @@ def _static_multipliers(system, layout, q, qd, t, args):
     return -jnp.linalg.solve(g @ g.T, g @ force)
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _solve(system, q0, qd0, t, args, target, layout, solver, max_steps, tolerance):
     if layout.momentum_indices:
         # Start the unknown velocities on the prescribed momenta at the guessed q: one Newton

@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
+from . import compilation
 from . import failures
 from .checks import initial_activity, validate_initial_state
 from .constant_mass import with_constant_mass
@@ -150,7 +151,7 @@ def _first(mask):
     return jnp.argmax(mask), jnp.any(mask)
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_controller,
                    max_steps, adjoint, progress_meter, baumgarte, projection, events,
                    max_segments, root_finder, check, tolerance):

@@ -45,6 +45,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import compilation
+
 NONE, NONFINITE, MAX_STEPS, SOLVER, MAX_SEGMENTS, COLLAPSED = 0, 1, 2, 3, 4, 5
 _ULPS = 64  # a step at most this many ulps of the time scale is at round-off
 
@@ -234,7 +236,7 @@ def first_failure(earlier: Failure, later: Failure) -> Failure:
 
 
 # ----------------------------------------------------------------------------- diagnosis
-@eqx.filter_jit
+@compilation.filter_jit
 def _probe(system, q, qd, t, dt, args):
     """Which quantity is non-finite at ``(q, q̇, t)`` and one Euler step of size ``dt`` later."""
     from . import constraints as _constraints

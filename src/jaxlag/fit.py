@@ -41,6 +41,7 @@ import optax
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
+from . import compilation
 from .conventions import wrap_state_function
 from .sensitivities import ForwardSensitivities
 from .simulate import simulate
@@ -250,14 +251,14 @@ def _residual_fn(model, fixed_states, adjoint):
     return lambda free, data: (model.residuals(free, data, fixed_states, adjoint), None)
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _ls_init(model, solver, free, data, fixed_states):
     fn = _residual_fn(model, fixed_states, diffrax.ForwardMode())
     f_struct, aux_struct = jax.eval_shape(fn, free, data)
     return solver.init(fn, free, data, {}, f_struct, aux_struct, frozenset())
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _ls_step(model, solver, free, data, fixed_states, state):
     fn = _residual_fn(model, fixed_states, diffrax.ForwardMode())
     free, state, _ = solver.step(fn, free, data, {}, state, frozenset())
@@ -265,12 +266,12 @@ def _ls_step(model, solver, free, data, fixed_states, state):
     return free, state, done
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _ls_loss(model, free, data, fixed_states):
     return 0.5 * jnp.sum(model.residuals(free, data, fixed_states, diffrax.ForwardMode()) ** 2)
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _value_and_grad(model, free, data, fixed_states):
     # The default adjoint: forward sensitivities for up to 10 free scalars, else checkpointed.
     adjoint = ForwardSensitivities()
@@ -279,13 +280,13 @@ def _value_and_grad(model, free, data, fixed_states):
     )(free)
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _optax_update(optimizer, free, opt_state, grads):
     updates, opt_state = optimizer.update(grads, opt_state, free)
     return optax.apply_updates(free, updates), opt_state
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _physical_jacobian(model, x, data, fixed_states, free_template):
     """Residuals and their Jacobian w.r.t. (physical parameters, free states) at ``x``."""
     p = len(model.spec.ravel(model.physical(free_template["params"])))
@@ -300,7 +301,7 @@ def _physical_jacobian(model, x, data, fixed_states, free_template):
     return residuals(x), jax.jacfwd(residuals)(x)
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _guess_states(system, ts, q0, qd0, args, starts, simulate_kwargs):
     guess = jax.vmap(lambda t, a, b: simulate(system, a, b, t, args=args, **dict(simulate_kwargs)))(
         ts, q0, qd0)

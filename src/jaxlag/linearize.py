@@ -54,6 +54,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import compilation
 from . import constraints as _constraints
 from . import kkt as _kkt
 from . import mechanics as _mechanics
@@ -237,7 +238,7 @@ def linearize(
     return eqx.tree_at(lambda x: x.state_matrix, lin, checked)
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _linearize(system, q, qd, t, args, inputs):
     n = q.shape[0]
 
@@ -331,7 +332,7 @@ def normal_modes(system, q, t=0.0, args=None, *, tolerance: float = 1e-6) -> Nor
     return eqx.tree_at(lambda x: x.frequencies_squared, modes, w2)
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _normal_modes(system, q, t, args, tolerance):
     qd = jnp.zeros_like(q)
     qdd = _accelerations(system, q, qd, t, args)

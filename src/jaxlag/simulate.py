@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import compilation
 from . import failures
 from .checks import (
     _is_concrete,
@@ -80,7 +81,7 @@ def _as_time(t, dtype):
     return np.asarray(t, dtype=dtype)
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat, max_steps,
            adjoint, event, progress_meter, baumgarte, projection, check, tolerance):
     system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation

@@ -27,6 +27,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from . import compilation
 from . import constraints as _constraints
 from .conventions import as_array_leaves
 from .kkt import deactivate
@@ -237,7 +238,7 @@ def consistent_initial_state(system, q0, qd0, t0=0.0, args=None, *, fixed_q=(), 
 
 # One compiled program per system and shapes: eager, the Newton loop would dispatch (and compile)
 # every small operation separately.
-@eqx.filter_jit
+@compilation.filter_jit
 def _consistent_state(system, q0, qd0, t0, args, newton_steps, tolerance, free_q, free_qd):
     q, qd = project_state(system, q0, qd0, t0, args, newton_steps, refresh_mass=True,
                           free_q=free_q, free_qd=free_qd)

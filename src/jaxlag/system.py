@@ -9,6 +9,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from . import compilation
 from . import constraints as _constraints
 from . import kkt as _kkt
 from . import mechanics as _mechanics
@@ -223,7 +224,7 @@ class System(eqx.Module):
 
 # Compiled once per (quantity, system, shapes): eager calls of the methods above are fast, and
 # inside a user's jit the call is simply inlined.
-@eqx.filter_jit
+@compilation.filter_jit
 def _evaluate_at_state(quantity, system, q, qd, t, args):
     return quantity(system, q, qd, t, args)
 

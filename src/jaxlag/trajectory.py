@@ -8,6 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from . import compilation
 from . import constraints as _constraints
 from . import kkt as _kkt
 from . import mechanics as _mechanics
@@ -44,7 +45,7 @@ _QUANTITIES = {
 }
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _evaluate(name: str, system_arrays, system_static, t, q, qd, args, active):
     quantity = _QUANTITIES[name]
 

@@ -68,6 +68,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from . import compilation
 from . import constraints as _constraints
 from .checks import _is_concrete, validate_initial_state
 from .dependence import may_depend
@@ -452,7 +453,7 @@ _FAILURE = (
 )
 
 
-@eqx.filter_jit
+@compilation.filter_jit
 def _integrate(scheme, system, q0, qd0, t0, dt, args, num_steps, save_every, throw, check,
                tolerance):
     system.check(q0, qd0, t0, args)
