@@ -140,9 +140,9 @@ def test_default_adjoint_is_forward_sensitivities(monkeypatch):
     module = sys.modules["jaxlag.simulate"]
     calls = []
 
-    def spy(run, inputs, choice):
+    def spy(run, inputs, choice, *rest):
         calls.append(choice)
-        return call_with_forward_sensitivities(run, inputs, choice)
+        return call_with_forward_sensitivities(run, inputs, choice, *rest)
 
     monkeypatch.setattr(module, "call_with_forward_sensitivities", spy)
 

@@ -36,7 +36,10 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.custom_derivatives import SymbolicZero
+
+from . import compilation
 
 
 class ForwardSensitivities(eqx.Module):
@@ -69,35 +72,92 @@ def _split_inexact(tree):
     return eqx.partition(tree, eqx.is_inexact_array)
 
 
-def closes_over_traced_values(run: Callable[[Any, Any], Any], inputs: Any, adjoint) -> bool:
-    """Whether ``run(inputs, adjoint)`` captures traced values other than its inputs.
+def _is_inexact_leaf(x) -> bool:
+    return jnp.issubdtype(x.dtype, jnp.inexact)
 
-    ``run`` is traced abstractly (``jax.make_jaxpr``, the inputs' arrays replaced by their shapes)
-    and the constants of the jaxpr are inspected: a closed-over parameter of an enclosing
-    ``grad``/``jit``/``vmap`` shows up there as a tracer. Anything that prevents the analysis
-    counts as "yes" (the caller then takes the general path).
+
+def trace_outputs(run: Callable[[Any, Any], Any], inputs: Any, adjoint) -> tuple[bool, Any]:
+    """``(closes_over, shapes)``: whether ``run(inputs, adjoint)`` captures traced values other
+    than its inputs, and the shapes of its outputs (``jax.ShapeDtypeStruct`` leaves).
+
+    ``run`` is traced abstractly once (``jax.make_jaxpr``, the inputs' arrays replaced by their
+    shapes) and the constants of the jaxpr are inspected: a closed-over parameter of an enclosing
+    ``grad``/``jit``/``vmap`` shows up there as a tracer. The same trace gives the output shapes
+    the forward rule of :func:`call_with_forward_sensitivities` needs, and fills JAX's tracing
+    cache of the jitted solver that the forward rule traces again. Anything that prevents the
+    analysis counts as "yes" (the caller then takes the general path).
     """
     dynamic, static = eqx.partition(inputs, eqx.is_array)
     try:
         spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)),
                             dynamic)
-        closed = jax.make_jaxpr(lambda d: run(eqx.combine(d, static), adjoint))(spec)
+        closed, shapes = jax.make_jaxpr(lambda d: run(eqx.combine(d, static), adjoint),
+                                        return_shape=True)(spec)
     except Exception:  # noqa: BLE001 - conservative: the general path is always correct
-        return True
-    return any(isinstance(c, jax.core.Tracer) for c in closed.consts)
+        return True, None
+    return any(isinstance(c, jax.core.Tracer) for c in closed.consts), shapes
+
+
+def closes_over_traced_values(run: Callable[[Any, Any], Any], inputs: Any, adjoint) -> bool:
+    """Whether ``run(inputs, adjoint)`` captures traced values other than its inputs (see
+    :func:`trace_outputs`)."""
+    return trace_outputs(run, inputs, adjoint)[0]
+
+
+def _unit_tangents(shapes, sizes, k):
+    """The k unit directions, split by input: ``(tangents, axes)`` with one host array of shape
+    ``(k, *shape)`` per differentiated input (axis 0) and zeros of the input's shape for the
+    others (not batched). Built in NumPy, so that no small device program is compiled."""
+    tangents, axes, offset = [], [], 0
+    for (shape, dtype), size in zip(shapes, sizes):
+        if size:
+            block = np.zeros((k, size), np.dtype(dtype))
+            block[offset + np.arange(size), np.arange(size)] = 1
+            tangents.append(block.reshape((k,) + tuple(shape)))
+            axes.append(0)
+        else:
+            tangents.append(np.zeros(shape, np.dtype(dtype)))
+            axes.append(None)
+        offset += size
+    return tangents, axes
+
+
+@compilation.filter_jit
+def _contract(sensitivities, cotangents, sizes, shapes):
+    """``θ̄ = Sᵀȳ``: the gradient of every input from the sensitivities ``S`` (k leading) and the
+    cotangents of the outputs (None where symbolically zero), split back into input shapes."""
+    total = None
+    for s, c in zip(sensitivities, cotangents, strict=True):
+        if c is None:
+            continue
+        term = jnp.tensordot(s, c.astype(s.dtype), axes=c.ndim)
+        total = term if total is None else total + term
+    grads, offset = [], 0
+    for (shape, dtype), size in zip(shapes, sizes):
+        if size and total is not None:
+            grads.append(total[offset:offset + size].reshape(shape).astype(dtype))
+        else:
+            grads.append(jnp.zeros(shape, dtype))
+        offset += size
+    return grads
 
 
 def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
-                                    choice: ForwardSensitivities) -> Any:
+                                    choice: ForwardSensitivities, output_shapes: Any = None,
+                                    finish: Callable[[Any], Any] | None = None) -> Any:
     """``run(inputs, adjoint)``, reverse-differentiated as :class:`ForwardSensitivities` says.
 
     ``inputs`` is any pytree; its floating-point array leaves are the differentiable inputs.
     ``run(inputs, choice.inner)`` must be differentiable in forward mode and
-    ``run(inputs, choice.fallback)`` in reverse mode.
+    ``run(inputs, choice.fallback)`` in reverse mode. ``output_shapes``: the output shapes of
+    ``run`` if known (:func:`trace_outputs`; saves a trace). ``finish``: applied to the primal
+    output (where its values are concrete when the caller is not being traced: ``simulate``
+    raises its failures there, on the host); it must not change the values.
     """
     dynamic, static = _split_inexact(inputs)
     shapes = [(jnp.shape(x), jnp.result_type(x)) for x in jax.tree.leaves(dynamic)]
     structure = jax.tree.structure(dynamic)
+    finish = finish or (lambda output: output)
     # What the forward rule decided while tracing, read by the backward rule of the same trace
     # (residuals must be arrays): the size of each perturbed leaf, the output structure.
     decided: dict[str, Any] = {}
@@ -105,9 +165,12 @@ def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
     def evaluate(values, adjoint):
         return _split_inexact(run(eqx.combine(values, static), adjoint))
 
+    def finished(inexact, rest):
+        return _split_inexact(finish(eqx.combine(inexact, rest)))
+
     @jax.custom_vjp
     def call(values):
-        inexact, rest = evaluate(values, choice.fallback)
+        inexact, rest = finished(*evaluate(values, choice.fallback))
         return eqx.combine(inexact, rest)
 
     def forward(values):
@@ -116,32 +179,30 @@ def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
         sizes = [math.prod(shape) if leaf.perturbed else 0
                  for leaf, (shape, _) in zip(leaves, shapes)]
         k = sum(sizes)
-        out_shape, _ = jax.eval_shape(lambda v: evaluate(v, choice.inner), primals)
+        if output_shapes is None:
+            out_shape, _ = jax.eval_shape(lambda v: evaluate(v, choice.inner), primals)
+        else:
+            out_shape, _ = eqx.partition(output_shapes, _is_inexact_leaf)
         out_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(out_shape))
         decided.update(sizes=sizes, outputs=jax.tree.structure(out_shape))
         if k == 0:
-            inexact, rest = evaluate(primals, choice.inner)
+            inexact, rest = finished(*evaluate(primals, choice.inner))
             return eqx.combine(inexact, rest), (None, None)
         if k > choice.max_tangents or k * out_bytes > choice.max_bytes:
             inexact, pullback, rest = jax.vjp(lambda v: evaluate(v, choice.fallback), primals,
                                               has_aux=True)
+            inexact, rest = finished(inexact, rest)
             return eqx.combine(inexact, rest), (None, pullback)
 
-        def push(direction):
-            tangents, offset = [], 0
-            for (shape, dtype), size in zip(shapes, sizes):
-                if size:
-                    tangents.append(direction[offset:offset + size].reshape(shape).astype(dtype))
-                    offset += size
-                else:
-                    tangents.append(jnp.zeros(shape, dtype))
+        def push(tangents):
             return jax.jvp(lambda v: evaluate(v, choice.inner), (primals,),
                            (jax.tree.unflatten(structure, tangents),), has_aux=True)
 
-        dtype = jnp.result_type(*[d for (_, d), size in zip(shapes, sizes) if size])
-        inexact, sensitivities, rest = jax.vmap(push, out_axes=(None, 0, None))(
-            jnp.eye(k, dtype=dtype)
+        tangents, axes = _unit_tangents(shapes, sizes, k)
+        inexact, sensitivities, rest = jax.vmap(push, in_axes=(axes,), out_axes=(None, 0, None))(
+            tangents
         )
+        inexact, rest = finished(inexact, rest)
         return eqx.combine(inexact, rest), (sensitivities, None)
 
     def backward(residuals, cotangent):
@@ -155,20 +216,12 @@ def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
                      for c in cotangents]
             (grads,) = pullback(jax.tree.unflatten(decided["outputs"], dense))
             return (grads,)
-        total = None
-        if sensitivities is not None:
-            for s, c in zip(jax.tree.leaves(sensitivities), cotangents, strict=True):
-                if _is_symbolic_zero(c):
-                    continue
-                term = jnp.tensordot(s, c.astype(s.dtype), axes=c.ndim)
-                total = term if total is None else total + term
-        grads, offset = [], 0
-        for (shape, dtype), size in zip(shapes, decided["sizes"]):
-            if size and total is not None:
-                grads.append(total[offset:offset + size].reshape(shape).astype(dtype))
-            else:
-                grads.append(jnp.zeros(shape, dtype))
-            offset += size
+        if sensitivities is None:
+            grads = [jnp.zeros(shape, dtype) for shape, dtype in shapes]
+        else:
+            grads = _contract(jax.tree.leaves(sensitivities),
+                              [None if _is_symbolic_zero(c) else c for c in cotangents],
+                              tuple(decided["sizes"]), tuple(shapes))
         return (jax.tree.unflatten(structure, grads),)
 
     call.defvjp(forward, backward, symbolic_zeros=True)

@@ -27,7 +27,7 @@ from .mechanics import unconstrained_accelerations
 from .sensitivities import (
     ForwardSensitivities,
     call_with_forward_sensitivities,
-    closes_over_traced_values,
+    trace_outputs,
 )
 from .stabilization import Baumgarte, Projection, wrap_for_projection
 from .system import System
@@ -278,14 +278,21 @@ def simulate(
 
     inputs = (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller,
               baumgarte, projection, events, event)
-    if isinstance(adjoint, ForwardSensitivities):
-        # Nothing traced: nothing to differentiate. A user function closing over a traced value
-        # (a parameter of the caller's grad captured in L): a custom_vjp cannot see it, so the
-        # checkpointed adjoint differentiates the simulation as it stands.
-        if _is_concrete(inputs) or closes_over_traced_values(run, inputs, adjoint.fallback):
+    if isinstance(adjoint, ForwardSensitivities) and not _is_concrete(inputs):
+        # One abstract trace: does a user function close over a traced value (a parameter of the
+        # caller's grad captured in L)? A custom_vjp cannot see it, so the checkpointed adjoint
+        # then differentiates the simulation as it stands. The trace also gives the output
+        # shapes the forward-sensitivity rule needs.
+        captured, shapes = trace_outputs(run, inputs, adjoint.inner)
+        if captured:
             trajectory = run(inputs, adjoint.fallback)
         else:
-            trajectory = call_with_forward_sensitivities(run, inputs, adjoint)
+            # Failures are raised inside the custom_vjp, where the record is concrete (host-side
+            # check, no compiled check) unless the caller itself is being traced.
+            finish = (lambda tr: _raise_if_failed(tr, tr.system, tr.args)) if throw else None
+            return call_with_forward_sensitivities(run, inputs, adjoint, shapes, finish)
+    elif isinstance(adjoint, ForwardSensitivities):  # nothing traced: nothing to differentiate
+        trajectory = run(inputs, adjoint.fallback)
     else:
         trajectory = run(inputs, adjoint)
     return _raise_if_failed(trajectory, system, args) if throw else trajectory
