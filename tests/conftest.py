@@ -1,3 +1,19 @@
-import jax
+import os
+
+# The test suite is dominated by compilation. Every program (the tests' own jits too, not only
+# jaxlag's) is compiled with the CPU options jaxlag uses for its own programs
+# (jaxlag.compilation) and, unless JAXLAG_TEST_OPTIMIZED=1, at XLA's backend optimization level
+# 0: the results are IEEE arithmetic either way (only rounding may differ, which every tolerance
+# here allows for), and the suite takes 7 instead of 10 minutes on 2 workers. Optimized code is
+# what `python -m benchmarks` and the examples run; run the suite with JAXLAG_TEST_OPTIMIZED=1
+# to test it too. XLA reads XLA_FLAGS when the backend starts (the first computation).
+_flags = os.environ.get("XLA_FLAGS", "")
+if "xla_cpu_use_fusion_emitters" not in _flags:
+    _flags += " --xla_cpu_use_fusion_emitters=false"
+if os.environ.get("JAXLAG_TEST_OPTIMIZED", "0") != "1" and "xla_backend_optimization_level" not in _flags:
+    _flags += " --xla_backend_optimization_level=0"
+os.environ["XLA_FLAGS"] = _flags.strip()
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)

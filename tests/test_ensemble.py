@@ -195,7 +195,8 @@ def test_pallas_interpret_equals_the_xla_loop(monkeypatch):
         with pytest.warns(RuntimeWarning, match="did not lower.*XLA loop"):
             fallback = jax.jit(lambda q: jl.simulate_batch(PENDULUM_XY, q, qd0, ts, backend="pallas",
                                                            **options).q)(q0)
-        np.testing.assert_array_equal(fallback, xla.q)
+        # The same loop compiled inside a user jit (returning q only): rounding may differ by an ulp.
+        np.testing.assert_allclose(fallback, xla.q, rtol=0, atol=1e-14)
 
 
 def test_gradients_match_closed_form_and_central_differences():
@@ -225,7 +226,10 @@ def test_gradients_match_closed_form_and_central_differences():
         np.testing.assert_allclose(reverse, exact, rtol=1e-7)
         # Adaptive: central differences also see the step sizes change with w (O(tol / eps)).
         np.testing.assert_allclose(reverse, fd, rtol=1e-8 if controller is CONSTANT else 1e-5)
-        np.testing.assert_allclose(forward, reverse, rtol=1e-11)
+        # Same discrete solver differentiated two ways: equal to rounding at constant steps. With
+        # adaptive steps the two programs round differently, which can flip a step acceptance
+        # near the threshold: then they differ like two solutions within rtol = 1e-10 (~1e-8).
+        np.testing.assert_allclose(forward, reverse, rtol=1e-11 if controller is CONSTANT else 1e-7)
 
 
 def scaled_oscillator(q, qd, args):

@@ -260,10 +260,14 @@ def _ls_init(model, solver, free, data, fixed_states):
 
 @compilation.filter_jit
 def _ls_step(model, solver, free, data, fixed_states, state):
+    """One optimistix step; also the loss at the returned point: optimistix keeps the residuals
+    of the last accepted point (the returned one) in ``state.f_info``, so no separate loss
+    program is compiled (after the first step, which only evaluates, it is the starting loss)."""
     fn = _residual_fn(model, fixed_states, diffrax.ForwardMode())
     free, state, _ = solver.step(fn, free, data, {}, state, frozenset())
     done, _ = solver.terminate(fn, free, data, {}, state, frozenset())
-    return free, state, done
+    loss = 0.5 * jnp.sum(state.f_info.residual ** 2)
+    return free, state, done, loss
 
 
 @compilation.filter_jit
@@ -431,10 +435,14 @@ def fit(
         solver = (optx.LevenbergMarquardt(rtol=rtol, atol=atol) if method == "levenberg_marquardt"
                   else optx.GaussNewton(rtol=rtol, atol=atol))
         state = _ls_init(model, solver, free, data, fixed_states)
-        history.append(float(_ls_loss(model, free, data, fixed_states)))
-        for steps in range(1, max_steps + 1):
-            free, state, done = _ls_step(model, solver, free, data, fixed_states, state)
+        if max_steps < 1:
             history.append(float(_ls_loss(model, free, data, fixed_states)))
+        for steps in range(1, max_steps + 1):
+            free, state, done, loss = _ls_step(model, solver, free, data, fixed_states, state)
+            loss, done = jax.device_get((loss, done))
+            if steps == 1:  # the first step evaluates the starting point and stays there
+                history.append(float(loss))
+            history.append(float(loss))
             _tick(bar, history[-1])
             if bool(done):
                 converged = True

@@ -89,7 +89,10 @@ def trace_outputs(run: Callable[[Any, Any], Any], inputs: Any, adjoint) -> tuple
     """
     dynamic, static = eqx.partition(inputs, eqx.is_array)
     try:
-        spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)),
+        # Weak types kept: the jitted solver traced here is then found in JAX's tracing cache
+        # when the forward rule traces it with the actual inputs.
+        spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x),
+                                                           weak_type=jax.typeof(x).weak_type),
                             dynamic)
         closed, shapes = jax.make_jaxpr(lambda d: run(eqx.combine(d, static), adjoint),
                                         return_shape=True)(spec)
@@ -142,6 +145,20 @@ def _contract(sensitivities, cotangents, sizes, shapes):
     return grads
 
 
+@compilation.filter_jit
+def _push(run, static, adjoint, primals, tangents, axes, structure):
+    """``run`` and its derivatives along the k unit directions: one compiled program
+    (``jax.jvp`` under ``jax.vmap``), reused by every call with equal ``run``, static inputs
+    and shapes. Inside it the solver's own jitted function is traced as in
+    :func:`trace_outputs`, so JAX's tracing cache serves it."""
+
+    def one(tangent_leaves):
+        return jax.jvp(lambda v: _split_inexact(run(eqx.combine(v, static), adjoint)), (primals,),
+                       (jax.tree.unflatten(structure, tangent_leaves),), has_aux=True)
+
+    return jax.vmap(one, in_axes=(list(axes),), out_axes=(None, 0, None))(tangents)
+
+
 def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
                                     choice: ForwardSensitivities, output_shapes: Any = None,
                                     finish: Callable[[Any], Any] | None = None) -> Any:
@@ -175,7 +192,11 @@ def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
 
     def forward(values):
         leaves = jax.tree.leaves(values, is_leaf=lambda x: hasattr(x, "perturbed"))
-        primals = jax.tree.unflatten(structure, [leaf.value for leaf in leaves])
+        # Primals of Python scalars arrive as JAX's typed scalars, which jit would treat as
+        # static (hashed) values: as arrays (weak type kept) they reuse the compiled program.
+        primals = jax.tree.unflatten(structure, [
+            leaf.value if isinstance(leaf.value, (jax.Array, np.ndarray)) else jnp.asarray(leaf.value)
+            for leaf in leaves])
         sizes = [math.prod(shape) if leaf.perturbed else 0
                  for leaf, (shape, _) in zip(leaves, shapes)]
         k = sum(sizes)
@@ -194,14 +215,9 @@ def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
             inexact, rest = finished(inexact, rest)
             return eqx.combine(inexact, rest), (None, pullback)
 
-        def push(tangents):
-            return jax.jvp(lambda v: evaluate(v, choice.inner), (primals,),
-                           (jax.tree.unflatten(structure, tangents),), has_aux=True)
-
         tangents, axes = _unit_tangents(shapes, sizes, k)
-        inexact, sensitivities, rest = jax.vmap(push, in_axes=(axes,), out_axes=(None, 0, None))(
-            tangents
-        )
+        inexact, sensitivities, rest = _push(run, static, choice.inner, primals, tangents,
+                                             tuple(axes), structure)
         inexact, rest = finished(inexact, rest)
         return eqx.combine(inexact, rest), (sensitivities, None)
 

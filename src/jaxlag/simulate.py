@@ -123,6 +123,39 @@ def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, save
     )
 
 
+class _Run(eqx.Module):
+    """The simulation as a function of its inputs and the adjoint: ``run(inputs, adjoint)``.
+
+    A module, not a closure, so that it compares equal across ``simulate`` calls with the same
+    options: the forward-sensitivity program of ``jax.grad`` is compiled once and reused.
+    """
+
+    segmented: bool = eqx.field(static=True)
+    max_steps: Any = eqx.field(static=True)
+    progress_meter: Any
+    max_segments: int = eqx.field(static=True)
+    event_root_finder: Any
+    check: bool = eqx.field(static=True)
+    tolerance: Any
+
+    def __call__(self, inputs, adjoint):
+        (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller, baumgarte,
+         projection, events, event) = inputs
+        if self.segmented:
+            ts_out, q, qd, active, log, failure = solve_segments(
+                system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_controller,
+                self.max_steps, adjoint, self.progress_meter, baumgarte, projection, events,
+                self.max_segments, self.event_root_finder, self.check, self.tolerance,
+            )
+            return Trajectory.from_states(system, ts_out, q, qd, args, active=active, events=log,
+                                          failure=failure)
+        return _solve(
+            system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat,
+            self.max_steps, adjoint, event, self.progress_meter, baumgarte, projection, self.check,
+            self.tolerance,
+        )
+
+
 def simulate(
     system: System,
     q0,
@@ -259,22 +292,8 @@ def simulate(
     if segmented and event_root_finder is None:
         event_root_finder = default_root_finder()
 
-    def run(inputs, adjoint):
-        (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller, baumgarte,
-         projection, events, event) = inputs
-        if segmented:
-            ts_out, q, qd, active, log, failure = solve_segments(
-                system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_controller, max_steps,
-                adjoint, progress_meter, baumgarte, projection, events, int(max_segments),
-                event_root_finder, check_in_jit, constraint_tolerance,
-            )
-            return Trajectory.from_states(system, ts_out, q, qd, args, active=active, events=log,
-                                          failure=failure)
-        return _solve(
-            system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat, max_steps,
-            adjoint, event, progress_meter, baumgarte, projection, check_in_jit,
-            constraint_tolerance,
-        )
+    run = _Run(segmented, max_steps, progress_meter, int(max_segments), event_root_finder,
+               check_in_jit, constraint_tolerance)
 
     inputs = (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller,
               baumgarte, projection, events, event)
