@@ -247,32 +247,63 @@ class _Model(eqx.Module):
         return jnp.concatenate(pieces)
 
 
-def _residual_fn(model, fixed_states, adjoint):
-    return lambda free, data: (model.residuals(free, data, fixed_states, adjoint), None)
+@compilation.filter_jit
+def _residuals_and_jacobian(model, free, data, fixed_states):
+    """``(r, J, y)``: the residuals at the free variables ``free``, their Jacobian with respect to
+    the raveled free variables ``y`` (``jax.flatten_util.ravel_pytree`` order) and ``y``.
+
+    Forward mode, one tangent per free scalar under ``vmap`` (the primal solve is not batched,
+    so it runs once). This is the one large program of a least-squares fit: the optimizer's own
+    step only sees the linear model built from it (:func:`_linear_model`).
+    """
+    flat, unravel = ravel_pytree(free)
+
+    def residuals(y):
+        return model.residuals(unravel(y), data, fixed_states, diffrax.ForwardMode())
+
+    def push(direction):
+        return jax.jvp(residuals, (flat,), (direction,))
+
+    r, columns = jax.vmap(push, out_axes=(None, 0))(jnp.eye(flat.shape[0], dtype=flat.dtype))
+    return r, columns.T, flat
+
+
+def _linear_model(free, linearization):
+    """``r + J (y − y₀)``: the residuals linearized at ``y₀`` (``linearization = (r, J, y₀)``).
+
+    optimistix' Gauss–Newton/Levenberg–Marquardt step evaluates the residual function only at
+    its trial point ``state.y_eval`` and linearizes it there; given the linearization at that
+    point this model has the same value (``r``) and the same Jacobian (``J``), so the step is the
+    one the solver takes on the simulation itself, without tracing the simulation into it.
+    """
+    r, jacobian, anchor = linearization
+    return r + jacobian @ (ravel_pytree(free)[0] - anchor), None
 
 
 @compilation.filter_jit
-def _ls_init(model, solver, free, data, fixed_states):
-    fn = _residual_fn(model, fixed_states, diffrax.ForwardMode())
-    f_struct, aux_struct = jax.eval_shape(fn, free, data)
-    return solver.init(fn, free, data, {}, f_struct, aux_struct, frozenset())
+def _ls_init(solver, free, linearization):
+    f_struct, aux_struct = jax.eval_shape(_linear_model, free, linearization)
+    return solver.init(_linear_model, free, linearization, {}, f_struct, aux_struct, frozenset())
 
 
 @compilation.filter_jit
-def _ls_step(model, solver, free, data, fixed_states, state):
-    """One optimistix step; also the loss at the returned point: optimistix keeps the residuals
-    of the last accepted point (the returned one) in ``state.f_info``, so no separate loss
-    program is compiled (after the first step, which only evaluates, it is the starting loss)."""
-    fn = _residual_fn(model, fixed_states, diffrax.ForwardMode())
-    free, state, _ = solver.step(fn, free, data, {}, state, frozenset())
-    done, _ = solver.terminate(fn, free, data, {}, state, frozenset())
+def _ls_step(solver, free, state, linearization):
+    """One optimistix step at ``state.y_eval`` (where ``linearization`` was taken); also the loss
+    at the returned point: optimistix keeps the residuals of the last accepted point (the
+    returned one) in ``state.f_info`` (after the first step, which only evaluates, the loss at
+    the start)."""
+    free, state, _ = solver.step(_linear_model, free, linearization, {}, state, frozenset())
+    done, _ = solver.terminate(_linear_model, free, linearization, {}, state, frozenset())
+    # At the optimum the actual reduction is rounding noise and trial steps can be rejected
+    # (the trust region then shrinks the step 4x per step, up to ~16 more steps): a rejected
+    # trial whose step is already within the solver's y tolerance ends the fit, as further
+    # steps could not move the parameters by more than that tolerance.
+    y = ravel_pytree(free)[0]
+    trial = ravel_pytree(state.y_eval)[0] - y
+    within = solver.norm(jnp.abs(trial) / (solver.atol + solver.rtol * jnp.abs(y))) < 1
+    done = done | (within & (state.num_steps_since_acceptance > 0))
     loss = 0.5 * jnp.sum(state.f_info.residual ** 2)
     return free, state, done, loss
-
-
-@compilation.filter_jit
-def _ls_loss(model, free, data, fixed_states):
-    return 0.5 * jnp.sum(model.residuals(free, data, fixed_states, diffrax.ForwardMode()) ** 2)
 
 
 @compilation.filter_jit
@@ -291,18 +322,19 @@ def _optax_update(optimizer, free, opt_state, grads):
 
 
 @compilation.filter_jit
-def _physical_jacobian(model, x, data, fixed_states, free_template):
-    """Residuals and their Jacobian w.r.t. (physical parameters, free states) at ``x``."""
+def _free_variables_jacobian(model, x, free_template):
+    """``∂y/∂x``: the raveled free variables ``y`` with respect to ``x`` = (physical parameters
+    in ``spec`` order, the other free variables raveled): the chain rule of the
+    reparameterizations, for the Jacobian in physical parameters."""
     p = len(model.spec.ravel(model.physical(free_template["params"])))
     rest_template = {k: v for k, v in free_template.items() if k != "params"}
     _, unravel_rest = ravel_pytree(rest_template)
 
-    def residuals(x_):
-        physical = model.spec.unravel(x_[:p])
-        free = {"params": model.unconstrained(physical), **unravel_rest(x_[p:])}
-        return model.residuals(free, data, fixed_states, diffrax.ForwardMode())
+    def free_of(x_):
+        free = {"params": model.unconstrained(model.spec.unravel(x_[:p])), **unravel_rest(x_[p:])}
+        return ravel_pytree(free)[0]
 
-    return residuals(x), jax.jacfwd(residuals)(x)
+    return jax.jacfwd(free_of)(x)
 
 
 @compilation.filter_jit
@@ -434,11 +466,16 @@ def fit(
                              f"optimizer; got {method!r}.")
         solver = (optx.LevenbergMarquardt(rtol=rtol, atol=atol) if method == "levenberg_marquardt"
                   else optx.GaussNewton(rtol=rtol, atol=atol))
-        state = _ls_init(model, solver, free, data, fixed_states)
+        # Each step: the simulation's residuals and Jacobian at the trial point (one compiled
+        # program), then the optimizer's step on that linearization (a small one).
+        linearization = _residuals_and_jacobian(model, free, data, fixed_states)
+        state = _ls_init(solver, free, linearization)
         if max_steps < 1:
-            history.append(float(_ls_loss(model, free, data, fixed_states)))
+            history.append(float(0.5 * np.sum(np.asarray(linearization[0]) ** 2)))
         for steps in range(1, max_steps + 1):
-            free, state, done, loss = _ls_step(model, solver, free, data, fixed_states, state)
+            if steps > 1:
+                linearization = _residuals_and_jacobian(model, state.y_eval, data, fixed_states)
+            free, state, done, loss = _ls_step(solver, free, state, linearization)
             loss, done = jax.device_get((loss, done))
             if steps == 1:  # the first step evaluates the starting point and stays there
                 history.append(float(loss))
@@ -465,7 +502,12 @@ def fit(
     fitted = model.physical(free["params"])
     x = jnp.concatenate([spec.ravel(fitted), ravel_pytree(
         {k: v for k, v in free.items() if k != "params"})[0]])
-    r, jac = _physical_jacobian(model, x, data, fixed_states, free)
+    flat = np.asarray(ravel_pytree(free)[0])
+    if isinstance(method, str) and np.array_equal(flat, np.asarray(linearization[2])):
+        r, jac_free, _ = linearization  # the last step was taken at (and accepted) this point
+    else:
+        r, jac_free, _ = _residuals_and_jacobian(model, free, data, fixed_states)
+    jac = jac_free @ _free_variables_jacobian(model, x, free)
     observed = int(np.sum(np.isfinite(np.asarray(batch.observations))))
     if noise_std is None:
         sigma2 = jnp.sum(r**2) / max(observed - x.shape[0], 1)
