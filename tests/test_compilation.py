@@ -1,0 +1,133 @@
+"""Compilation: jaxlag's XLA options, and no recompilation where only values change.
+
+Counts compilations with ``jax.monitoring`` (no timings: speed is measured by
+``benchmarks/bench_first_result.py``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxlag as jl
+
+jax.config.update("jax_enable_x64", True)
+
+_COMPILES = [0]
+
+
+def _count(event, duration, **kwargs):
+    if event == "/jax/core/compile/backend_compile_duration":
+        _COMPILES[0] += 1
+
+
+jax.monitoring.register_event_duration_secs_listener(_count)
+
+
+@contextlib.contextmanager
+def compilations():
+    """Yields a list that holds, after the block, the number of XLA compilations inside it."""
+    box, start = [], _COMPILES[0]
+    yield box
+    box.append(_COMPILES[0] - start)
+
+
+def _sphere_lagrangian(q, qd, args):
+    r, th = q
+    rd, thd = qd
+    return 0.5 * args["m"] * (rd**2 + r**2 * thd**2) - args["m"] * args["g"] * r * jnp.cos(th)
+
+
+SPHERE = jl.System(_sphere_lagrangian, holonomic=lambda q, args: jnp.array([q[0] - args["R"]]))
+PENDULUM = jl.System(lambda q, qd, args: 0.5 * args["l"] ** 2 * qd[0] ** 2
+                     + args["g"] * args["l"] * jnp.cos(q[0]))
+
+
+def test_compiler_options(monkeypatch):
+    expected = {"xla_cpu_use_fusion_emitters": False} if jax.default_backend() == "cpu" else {}
+    assert jl.compiler_options() == expected
+    assert jl.compiler_options("gpu") == {}
+    monkeypatch.setenv("JAXLAG_COMPILER_OPTIONS", "0")
+    assert jl.compiler_options("cpu") == {}
+
+
+def test_user_jit_vmap_and_grad_with_and_without_options():
+    """jaxlag's jitted functions traced inside a user's jit compile with the user's options
+    (JAX allows options only on top-level programs): with or without them, same numbers."""
+    ts = jnp.linspace(0.0, 1.0, 11)
+    args = {"m": 1.0, "g": 9.81, "R": 2.0}
+
+    def final_angle(q0, a):
+        return jl.simulate(SPHERE, q0, jnp.zeros(2), ts, args=a).q[-1, 1]
+
+    q0 = jnp.array([2.0, 0.1])
+    eager = final_angle(q0, args)
+    plain = jax.jit(final_angle)(q0, args)
+    tuned = jax.jit(final_angle, compiler_options=jl.compiler_options())(q0, args)
+    np.testing.assert_allclose([plain, tuned], [eager, eager], rtol=1e-12)
+    batch = jax.jit(jax.vmap(final_angle, in_axes=(0, None)))(jnp.stack([q0, q0]), args)
+    np.testing.assert_allclose(batch, [eager, eager], rtol=1e-12)
+    grad_eager = jax.grad(final_angle, argnums=1)(q0, args)
+    grad_jit = jax.jit(jax.grad(final_angle, argnums=1))(q0, args)
+    for key in args:
+        np.testing.assert_allclose(grad_jit[key], grad_eager[key], rtol=1e-10)
+
+
+def test_new_values_do_not_recompile():
+    """A second simulate and a second jax.grad with new values of q0, args and ts (same shapes)
+    compile nothing, including the forward-sensitivity program of the default adjoint."""
+    def run(theta, g, t_end):
+        ts = jnp.linspace(0.0, t_end, 11)
+        traj = jl.simulate(SPHERE, jnp.array([2.0, theta]), jnp.zeros(2), ts,
+                           args={"m": 1.0, "g": g, "R": 2.0})
+        loss = jax.grad(lambda a: jnp.sum(jl.simulate(
+            SPHERE, jnp.array([2.0, theta]), jnp.zeros(2), ts, args=a).q[:, 1] ** 2))
+        return traj.q, loss({"m": 1.0, "g": g, "R": 2.0})
+
+    jax.block_until_ready(run(0.1, 9.81, 1.0))
+    with compilations() as count:
+        q, grads = jax.block_until_ready(run(0.2, 9.7, 0.9))
+    assert count == [0]
+    assert np.all(np.isfinite(q)) and np.isfinite(grads["g"])
+
+
+def test_fit_twice_compiles_once_and_stops_at_the_noise_floor():
+    """A second fit (new data, new starting values) compiles nothing; the fit stops within a
+    few steps once the trial steps are below its tolerance (rejections at the noise floor do
+    not shrink the step down to zero)."""
+    bob = lambda q, qd, args: args["l"] * jnp.array([jnp.sin(q[0]), -jnp.cos(q[0])])  # noqa: E731
+    ts = jnp.linspace(0.0, 2.0, 41)
+
+    def fit(truth, guess, seed):
+        traj = jl.simulate(PENDULUM, jnp.array([0.5]), jnp.zeros(1), ts, args=truth)
+        data = jax.vmap(lambda q, qd: bob(q, qd, truth))(traj.q, traj.qd)
+        data = data + 1e-3 * np.random.default_rng(seed).standard_normal(data.shape)
+        return jl.fit(PENDULUM, guess, jl.Experiment(ts, data, jnp.array([0.5]), jnp.zeros(1)),
+                      observe=bob, transforms={"g": jl.Positive(), "l": jl.Positive()})
+
+    first = fit({"g": 9.81, "l": 0.8}, {"g": 11.0, "l": 0.6}, 0)
+    with compilations() as count:
+        second = fit({"g": 9.7, "l": 0.9}, {"g": 8.0, "l": 1.1}, 1)
+    assert count == [0]
+    for result, truth in ((first, {"g": 9.81, "l": 0.8}), (second, {"g": 9.7, "l": 0.9})):
+        assert result.converged and result.num_steps <= 12
+        for key, value in truth.items():  # within 5 standard errors of the truth
+            assert abs(float(result.params[key]) - value) < 5 * float(result.standard_errors[key])
+
+
+@pytest.mark.parametrize("mode", ["eager", "jit"])
+def test_failure_inside_grad_is_raised(mode):
+    """The forward-sensitivity rule raises run-time failures with the numbers (host-side when
+    eager, from the program under jit)."""
+    def loss(g):
+        return jnp.sum(jl.simulate(PENDULUM, jnp.array([0.5]), jnp.zeros(1),
+                                   jnp.linspace(0.0, 50.0, 3), args={"g": g, "l": 1.0},
+                                   max_steps=16).q ** 2)
+
+    grad = jax.grad(loss) if mode == "eager" else jax.jit(jax.grad(loss))
+    with pytest.raises(Exception, match="max_steps = 16"):
+        jax.block_until_ready(grad(9.81))
