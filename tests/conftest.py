@@ -13,6 +13,8 @@ if "xla_cpu_use_fusion_emitters" not in _flags:
 if os.environ.get("JAXLAG_TEST_OPTIMIZED", "0") != "1" and "xla_backend_optimization_level" not in _flags:
     _flags += " --xla_backend_optimization_level=0"
 os.environ["XLA_FLAGS"] = _flags.strip()
+# No persistent compilation cache: every run compiles from scratch, as on a fresh CI machine.
+os.environ.setdefault("JAXLAG_COMPILATION_CACHE", "0")
 
 import jax  # noqa: E402
 

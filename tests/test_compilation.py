@@ -131,3 +131,41 @@ def test_failure_inside_grad_is_raised(mode):
     grad = jax.grad(loss) if mode == "eager" else jax.jit(jax.grad(loss))
     with pytest.raises(Exception, match="max_steps = 16"):
         jax.block_until_ready(grad(9.81))
+
+
+def test_persistent_cache_in_the_user_cache_directory(tmp_path):
+    """Importing jaxlag points JAX's persistent cache at $XDG_CACHE_HOME/jaxlag/jax (unless the
+    user configured one or opted out); a second process then loads programs from it."""
+    import os
+    import subprocess
+    import sys
+
+    script = (
+        "import jax, jax.numpy as jnp\n"
+        "hits = []\n"
+        "jax.monitoring.register_event_listener(lambda e, **k: hits.append(e) "
+        "if e == '/jax/compilation_cache/cache_hits' else None)\n"
+        "import jaxlag as jl\n"
+        "jax.config.update('jax_enable_x64', True)\n"
+        "s = jl.System(lambda q, qd: 0.5 * qd[0] ** 2 - 0.5 * q[0] ** 2)\n"
+        "jl.simulate(s, jnp.array([1.0]), jnp.zeros(1), jnp.linspace(0, 1, 3)).q.block_until_ready()\n"
+        "print(jax.config.jax_compilation_cache_dir, len(hits))\n"
+    )
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("JAXLAG_COMPILATION_CACHE", "JAX_COMPILATION_CACHE_DIR")}
+    env["XDG_CACHE_HOME"] = str(tmp_path)
+
+    def run(**extra):
+        out = subprocess.run([sys.executable, "-c", script], env={**env, **extra},
+                             capture_output=True, text=True, timeout=600)
+        assert out.returncode == 0, out.stderr[-2000:]
+        directory, hits = out.stdout.split()
+        return directory, int(hits)
+
+    directory, hits = run()  # (a program compiled twice in one process may already hit)
+    assert directory == str(tmp_path / "jaxlag" / "jax")
+    assert any(os.scandir(directory))
+    assert run()[1] > hits  # the second process reads what the first wrote
+    assert run(JAXLAG_COMPILATION_CACHE="0")[0] == "None"
+    own = tmp_path / "mine"
+    assert run(JAX_COMPILATION_CACHE_DIR=str(own))[0] == str(own)

@@ -5,7 +5,7 @@ compiled, differentiable diffrax simulation. Sign convention everywhere:
 ``d/dt ∂L/∂q̇ − ∂L/∂q = Jᵀλ + Aᵀμ − ∂R/∂q̇ + Q``, i.e. ``M q̈ = F + Jᵀλ + Aᵀμ``.
 """
 
-from . import analysis, contact, coordinates, loads, rotations, systems
+from . import analysis, compilation, contact, coordinates, loads, rotations, systems
 from .batch import batch_sharding, simulate_batch
 from .compilation import compiler_options
 from .ensemble import RK4
@@ -23,6 +23,7 @@ from .variational import simulate_variational
 
 __all__ = [
     "analysis",
+    "compilation",
     "batch_sharding",
     "simulate_batch",
     "contact",
@@ -57,3 +58,5 @@ __all__ = [
 ]
 
 __version__ = "0.1.0"
+
+compilation.enable_persistent_cache()

@@ -17,6 +17,15 @@ derived quantities of a trajectory, ...) is jitted by :func:`filter_jit`, which 
 nothing changes). Inside a user's own ``jax.jit`` the outer program's options apply: pass
 ``compiler_options=jl.compiler_options()`` to it to get the same compile time. Set the
 environment variable ``JAXLAG_COMPILER_OPTIONS=0`` to compile with XLA's defaults.
+
+**Persistent compilation cache.** Unless the user has configured JAX's cache (the
+``JAX_COMPILATION_CACHE_DIR`` variable or ``jax_compilation_cache_dir``), importing jaxlag
+points it at ``$XDG_CACHE_HOME/jaxlag/jax`` (default ``~/.cache/jaxlag/jax``) and caches programs
+of any compile time (JAX's default threshold, 1 s, would skip every program jaxlag compiles now).
+A second run of the same script then loads the small programs instead of compiling them (the
+demo: 18 s → 14 s). The solver loops themselves are not stored: JAX 0.10 does not write programs
+with host callbacks, and diffrax checks traced save times with two. ``JAXLAG_COMPILATION_CACHE=0``
+turns this off.
 """
 
 from __future__ import annotations
@@ -114,3 +123,23 @@ def jit(fn=None, **jitkwargs):
     if compiler_options() and _compiled_at_top_level():
         jitkwargs["compiler_options"] = {**compiler_options(), **jitkwargs.get("compiler_options", {})}
     return jax.jit(fn, **jitkwargs)
+
+
+def enable_persistent_cache() -> str | None:
+    """Point JAX's persistent compilation cache at jaxlag's user cache directory (see the module
+    docstring) unless the user configured one or set ``JAXLAG_COMPILATION_CACHE=0``. Returns the
+    directory in use by this call, or None."""
+    if os.environ.get("JAXLAG_COMPILATION_CACHE", "1").strip().lower() in ("0", "false", "no", "off"):
+        return None
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR") or jax.config.jax_compilation_cache_dir:
+        return None  # the user's own cache settings stand
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    directory = os.path.join(base, "jaxlag", "jax")
+    try:
+        os.makedirs(directory, exist_ok=True)
+    except OSError:
+        return None  # no writable cache directory: compile as usual
+    jax.config.update("jax_compilation_cache_dir", directory)
+    if jax.config.jax_persistent_cache_min_compile_time_secs == 1.0:  # JAX's default
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    return directory
