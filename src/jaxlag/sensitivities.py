@@ -165,11 +165,12 @@ def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
     """``run(inputs, adjoint)``, reverse-differentiated as :class:`ForwardSensitivities` says.
 
     ``inputs`` is any pytree; its floating-point array leaves are the differentiable inputs.
-    ``run(inputs, choice.inner)`` must be differentiable in forward mode and
-    ``run(inputs, choice.fallback)`` in reverse mode. ``output_shapes``: the output shapes of
-    ``run`` if known (:func:`trace_outputs`; saves a trace). ``finish``: applied to the primal
-    output (where its values are concrete when the caller is not being traced: ``simulate``
-    raises its failures there, on the host); it must not change the values.
+    ``run(inputs, choice.inner)`` must be differentiable in forward mode (it also computes the
+    undifferentiated values) and ``run(inputs, choice.fallback)`` in reverse mode.
+    ``output_shapes``: the output shapes of ``run`` if known (:func:`trace_outputs`; saves a
+    trace). ``finish``: applied to the primal output (where its values are concrete when the
+    caller is not being traced: ``simulate`` raises its failures there, on the host); it must not
+    change the values.
     """
     dynamic, static = _split_inexact(inputs)
     shapes = [(jnp.shape(x), jnp.result_type(x)) for x in jax.tree.leaves(dynamic)]
@@ -187,7 +188,9 @@ def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
 
     @jax.custom_vjp
     def call(values):
-        inexact, rest = finished(*evaluate(values, choice.fallback))
+        # Not differentiated here (the rules below are): the primal runs with the inner adjoint,
+        # whose trace trace_outputs and the forward rule share (an adjoint changes no value).
+        inexact, rest = finished(*evaluate(values, choice.inner))
         return eqx.combine(inexact, rest)
 
     def forward(values):

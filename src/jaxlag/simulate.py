@@ -310,7 +310,9 @@ def simulate(
             # check, no compiled check) unless the caller itself is being traced.
             finish = (lambda tr: _raise_if_failed(tr, tr.system, tr.args)) if throw else None
             return call_with_forward_sensitivities(run, inputs, adjoint, shapes, finish)
-    elif isinstance(adjoint, ForwardSensitivities):  # nothing traced: nothing to differentiate
+    elif isinstance(adjoint, ForwardSensitivities):
+        # No traced input; a user function may still close over a value of the caller's grad,
+        # which the fallback (reverse-mode) adjoint differentiates.
         trajectory = run(inputs, adjoint.fallback)
     else:
         trajectory = run(inputs, adjoint)
