@@ -101,12 +101,6 @@ def trace_outputs(run: Callable[[Any, Any], Any], inputs: Any, adjoint) -> tuple
     return any(isinstance(c, jax.core.Tracer) for c in closed.consts), shapes
 
 
-def closes_over_traced_values(run: Callable[[Any, Any], Any], inputs: Any, adjoint) -> bool:
-    """Whether ``run(inputs, adjoint)`` captures traced values other than its inputs (see
-    :func:`trace_outputs`)."""
-    return trace_outputs(run, inputs, adjoint)[0]
-
-
 def _unit_tangents(shapes, sizes, k):
     """The k unit directions, split by input: ``(tangents, axes)`` with one host array of shape
     ``(k, *shape)`` per differentiated input (axis 0) and zeros of the input's shape for the
