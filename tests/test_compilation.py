@@ -169,3 +169,14 @@ def test_persistent_cache_in_the_user_cache_directory(tmp_path):
     assert run(JAXLAG_COMPILATION_CACHE="0")[0] == "None"
     own = tmp_path / "mine"
     assert run(JAX_COMPILATION_CACHE_DIR=str(own))[0] == str(own)
+
+
+def test_options_unknown_to_this_xla_fall_back_to_its_defaults(monkeypatch):
+    from jaxlag import compilation
+
+    monkeypatch.setattr(compilation, "CPU_COMPILER_OPTIONS", {"xla_no_such_option_here": True})
+    compilation._cpu_options_supported.cache_clear()
+    try:
+        assert compilation.compiler_options("cpu") == {}
+    finally:
+        compilation._cpu_options_supported.cache_clear()

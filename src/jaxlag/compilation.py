@@ -16,7 +16,8 @@ derived quantities of a trajectory, ...) is jitted by :func:`filter_jit`, which 
 :func:`compiler_options` to ``jax.jit`` when the default backend is the CPU (on GPUs and TPUs
 nothing changes). Inside a user's own ``jax.jit`` the outer program's options apply: pass
 ``compiler_options=jl.compiler_options()`` to it to get the same compile time. Set the
-environment variable ``JAXLAG_COMPILER_OPTIONS=0`` to compile with XLA's defaults.
+environment variable ``JAXLAG_COMPILER_OPTIONS=0`` to compile with XLA's defaults (as happens
+by itself with an XLA that does not know the option: checked once, by one tiny compile).
 
 **Persistent compilation cache.** Unless the user has configured JAX's cache (the
 ``JAX_COMPILATION_CACHE_DIR`` variable or ``jax_compilation_cache_dir``), importing jaxlag
@@ -35,6 +36,7 @@ import os
 
 import equinox as eqx
 import jax
+import numpy as np
 
 #: XLA options for the CPU backend (see the module docstring for the measurements).
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
@@ -53,9 +55,21 @@ def compiler_options(backend: str | None = None) -> dict:
     program, with its options. Empty on GPU/TPU, or when ``JAXLAG_COMPILER_OPTIONS=0``.
     """
     backend = jax.default_backend() if backend is None else backend
-    if backend != "cpu" or not _enabled():
+    if backend != "cpu" or not _enabled() or not _cpu_options_supported():
         return {}
     return dict(CPU_COMPILER_OPTIONS)
+
+
+@functools.cache
+def _cpu_options_supported() -> bool:
+    """Whether this XLA knows the options (older jaxlibs reject unknown ones): one tiny compile,
+    once per process."""
+    try:
+        on_cpu = jax.device_put(np.float32(0), jax.devices("cpu")[0])
+        jax.jit(lambda x: x + 1, compiler_options=CPU_COMPILER_OPTIONS).lower(on_cpu).compile()
+        return True
+    except Exception:  # noqa: BLE001 - any refusal: compile with XLA's defaults
+        return False
 
 
 #: Traces under which a jitted call is still compiled as a top-level program (evaluated eagerly,
@@ -120,7 +134,7 @@ def jit(fn=None, **jitkwargs):
     """``jax.jit`` compiling with :func:`compiler_options` when it is a top-level program."""
     if fn is None:
         return functools.partial(jit, **jitkwargs)
-    if compiler_options() and _compiled_at_top_level():
+    if _compiled_at_top_level() and compiler_options():
         jitkwargs["compiler_options"] = {**compiler_options(), **jitkwargs.get("compiler_options", {})}
     return jax.jit(fn, **jitkwargs)
 
