@@ -24,7 +24,7 @@ by itself with an XLA that does not know the option: checked once, by one tiny c
 points it at ``$XDG_CACHE_HOME/jaxlag/jax`` (default ``~/.cache/jaxlag/jax``) and caches programs
 of any compile time (JAX's default threshold, 1 s, would skip every program jaxlag compiles now).
 A second run of the same script then loads the small programs instead of compiling them (the
-demo: 18 s → 14 s). The solver loops themselves are not stored: JAX 0.10 does not write programs
+demo: 17 s → 12 s). The solver loops themselves are not stored: JAX 0.10 does not write programs
 with host callbacks, and diffrax checks traced save times with two. ``JAXLAG_COMPILATION_CACHE=0``
 turns this off.
 """
