@@ -42,9 +42,9 @@ import numpy as np
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
 
-def _enabled() -> bool:
-    return os.environ.get("JAXLAG_COMPILER_OPTIONS", "1").strip().lower() not in ("0", "false",
-                                                                                  "no", "off")
+def _switched_off(variable: str) -> bool:
+    """Whether the environment variable says 0/false/no/off (jaxlag's opt-outs)."""
+    return os.environ.get(variable, "1").strip().lower() in ("0", "false", "no", "off")
 
 
 def compiler_options(backend: str | None = None) -> dict:
@@ -55,7 +55,7 @@ def compiler_options(backend: str | None = None) -> dict:
     program, with its options. Empty on GPU/TPU, or when ``JAXLAG_COMPILER_OPTIONS=0``.
     """
     backend = jax.default_backend() if backend is None else backend
-    if backend != "cpu" or not _enabled() or not _cpu_options_supported():
+    if backend != "cpu" or _switched_off("JAXLAG_COMPILER_OPTIONS") or not _cpu_options_supported():
         return {}
     return dict(CPU_COMPILER_OPTIONS)
 
@@ -134,8 +134,9 @@ def jit(fn=None, **jitkwargs):
     """``jax.jit`` compiling with :func:`compiler_options` when it is a top-level program."""
     if fn is None:
         return functools.partial(jit, **jitkwargs)
-    if _compiled_at_top_level() and compiler_options():
-        jitkwargs["compiler_options"] = {**compiler_options(), **jitkwargs.get("compiler_options", {})}
+    options = compiler_options() if _compiled_at_top_level() else {}
+    if options:
+        jitkwargs["compiler_options"] = {**options, **jitkwargs.get("compiler_options", {})}
     return jax.jit(fn, **jitkwargs)
 
 
@@ -143,7 +144,7 @@ def enable_persistent_cache() -> str | None:
     """Point JAX's persistent compilation cache at jaxlag's user cache directory (see the module
     docstring) unless the user configured one or set ``JAXLAG_COMPILATION_CACHE=0``. Returns the
     directory in use by this call, or None."""
-    if os.environ.get("JAXLAG_COMPILATION_CACHE", "1").strip().lower() in ("0", "false", "no", "off"):
+    if _switched_off("JAXLAG_COMPILATION_CACHE"):
         return None
     if os.environ.get("JAX_COMPILATION_CACHE_DIR") or jax.config.jax_compilation_cache_dir:
         return None  # the user's own cache settings stand
