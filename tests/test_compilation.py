@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -147,8 +148,11 @@ def test_persistent_cache_in_the_user_cache_directory(tmp_path):
         "if e == '/jax/compilation_cache/cache_hits' else None)\n"
         "import jaxlag as jl\n"
         "jax.config.update('jax_enable_x64', True)\n"
-        "s = jl.System(lambda q, qd: 0.5 * qd[0] ** 2 - 0.5 * q[0] ** 2)\n"
-        "jl.simulate(s, jnp.array([1.0]), jnp.zeros(1), jnp.linspace(0, 1, 3)).q.block_until_ready()\n"
+        "s = jl.System(lambda q, qd, args: 0.5 * qd[0] ** 2 - 0.5 * args['k'] * q[0] ** 2)\n"
+        "run = lambda k: jl.simulate(s, jnp.array([1.0]), jnp.zeros(1), jnp.linspace(0, 1, 3), "
+        "args={'k': k}).q\n"
+        "run(1.0).block_until_ready()\n"
+        "jax.grad(lambda k: run(k)[-1, 0])(1.0).block_until_ready()\n"
         "print(jax.config.jax_compilation_cache_dir, len(hits))\n"
     )
     env = {k: v for k, v in os.environ.items()
@@ -164,7 +168,11 @@ def test_persistent_cache_in_the_user_cache_directory(tmp_path):
 
     directory, hits = run()  # (a program compiled twice in one process may already hit)
     assert directory == str(tmp_path / "jaxlag" / "jax")
-    assert any(os.scandir(directory))
+    # The solver programs are stored too (JAX refuses programs with host callbacks): the solve
+    # and the forward sensitivities of jax.grad (file names start with the program's name).
+    stored = [entry.name for entry in os.scandir(directory)]
+    for program in ("jit__solve-", "jit__push-"):
+        assert any(name.startswith(program) for name in stored), (program, stored)
     assert run()[1] > hits  # the second process reads what the first wrote
     assert run(JAXLAG_COMPILATION_CACHE="0")[0] == "None"
     own = tmp_path / "mine"
@@ -180,3 +188,38 @@ def test_options_unknown_to_this_xla_fall_back_to_its_defaults(monkeypatch):
         assert compilation.compiler_options("cpu") == {}
     finally:
         compilation._cpu_options_supported.cache_clear()
+
+
+def test_diffrax_checks_stay_where_jaxlag_did_not_check_on_the_host():
+    """Save times checked on the host skip diffrax's compiled checks; anything else keeps them:
+    a SaveAt outside [t0, t1] still raises, also after a checked call traced the same check
+    with the same shapes (equinox caches traced checks: the NaN variant must not serve it),
+    and equinox is restored afterwards."""
+    from equinox import _errors
+
+    original = _errors.branched_error_if
+    q0 = jnp.array([0.5])
+    args = {"g": 9.81, "l": 1.0}
+    traj = jl.simulate(PENDULUM, q0, jnp.zeros(1), t0=0.0, t1=1.0, args=args,
+                       saveat=diffrax.SaveAt(ts=jnp.array([0.25, 0.5])))
+    np.testing.assert_allclose(traj.t, [0.25, 0.5])
+    assert _errors.branched_error_if is original
+    with pytest.raises(Exception, match="saveat.ts must lie between t0 and t1"):
+        jax.block_until_ready(jl.simulate(PENDULUM, q0, jnp.zeros(1), t0=0.0, t1=1.0, args=args,
+                                          saveat=diffrax.SaveAt(ts=jnp.array([0.5, 2.0]))).q)
+    assert _errors.branched_error_if is original
+
+
+def test_a_check_inside_the_equations_of_motion_still_raises():
+    """The window in which diffrax's input checks compile without callbacks closes before the
+    solver loop is traced: an ``eqx.error_if`` in a user's Lagrangian raises, not NaN."""
+    import equinox as eqx
+
+    def lagrangian(q, qd, args):
+        q = eqx.error_if(q, q[0] > 0.4, "the angle left the model's range")
+        return 0.5 * qd[0] ** 2 + args["g"] * jnp.cos(q[0])
+
+    system = jl.System(lagrangian)
+    with pytest.raises(Exception, match="the angle left the model's range"):
+        jax.block_until_ready(jl.simulate(system, jnp.array([0.3]), jnp.array([1.0]),
+                                          jnp.linspace(0.0, 1.0, 5), args={"g": 9.81}).q)

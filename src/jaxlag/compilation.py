@@ -31,8 +31,10 @@ turns this off.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
+import threading
 
 import equinox as eqx
 import jax
@@ -158,3 +160,77 @@ def enable_persistent_cache() -> str | None:
     if jax.config.jax_persistent_cache_min_compile_time_secs == 1.0:  # JAX's default
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return directory
+
+
+# ----------------------------------------------------------------------------- checked on the host
+_PROLOGUE_LOCK = threading.RLock()
+_prologue_saved: list = []  # equinox's functions to restore, innermost last
+
+
+@contextlib.contextmanager
+def diffrax_checks_done_on_host(enabled: bool = True):
+    """While tracing the start of a ``diffrax.diffeqsolve`` whose inputs jaxlag has already
+    checked on the host, compile diffrax's own input checks without host callbacks.
+
+    diffrax guards its inputs with ``eqx.error_if`` (``(t1 − t0)·dt0 ≥ 0``; save times ordered
+    and inside ``[t0, t1]``). With traced times each check is a host callback in the program,
+    and JAX 0.10 does not store programs with host callbacks in its persistent cache: the
+    solver, the most expensive program of a script, would be compiled again by every run.
+    When the values were concrete, :func:`jaxlag.simulate` has checked them on the host, so the
+    compiled checks are redundant: inside this context ``eqx.error_if`` calls that ask for the
+    default behaviour get ``on_error="nan"`` instead (the same predicate, a NaN substitution,
+    no callback). The explicit argument, not equinox's global ``EQX_ON_ERROR``, matters:
+    equinox caches the traced check by its arguments, so a NaN variant never serves a later
+    call outside the window.
+
+    The switch replaces equinox's module-level ``branched_error_if`` (which ``eqx.error_if``
+    calls), so it is held for the shortest window that covers those checks: it ends at
+    :func:`end_diffrax_prologue`, which jaxlag's step-size guard calls first thing in its
+    ``init`` (diffrax initializes the controller right after checking its inputs; the solver
+    loop is traced after that, with equinox restored), or at the end of the context. A user's
+    own ``EQX_ON_ERROR`` other than ``raise`` is left alone, and if equinox's private layout has
+    changed this does nothing (the program is then compiled with the callbacks, as before, and
+    just not cached).
+    """
+    module = _equinox_errors()
+    if not enabled or module is None or module.EQX_ON_ERROR != "raise":
+        yield
+        return
+    with _PROLOGUE_LOCK:
+        depth = len(_prologue_saved)
+        original = module.branched_error_if
+        _prologue_saved.append(original)
+
+        def branched_error_if(x, pred, index, msgs, *, on_error="default"):
+            return original(x, pred, index, msgs,
+                            on_error="nan" if on_error == "default" else on_error)
+
+        module.branched_error_if = branched_error_if
+        try:
+            yield
+        finally:
+            while len(_prologue_saved) > depth:
+                end_diffrax_prologue()
+
+
+def end_diffrax_prologue() -> None:
+    """End the innermost :func:`diffrax_checks_done_on_host` window (no-op outside one)."""
+    with _PROLOGUE_LOCK:
+        if _prologue_saved:
+            module = _equinox_errors()
+            original = _prologue_saved.pop()
+            if module is not None:
+                module.branched_error_if = original
+
+
+def _equinox_errors():
+    """equinox's private error module if it still has what this relies on, else None."""
+    try:
+        from equinox import _errors
+    except ImportError:  # pragma: no cover - equinox reorganized
+        return None
+    if not (isinstance(getattr(_errors, "EQX_ON_ERROR", None), str)
+            and callable(getattr(_errors, "branched_error_if", None))
+            and getattr(_errors.error_if, "__module__", None) == _errors.__name__):
+        return None
+    return _errors

@@ -144,13 +144,18 @@ def as_array_leaves(tree):
 
     Used on ``args`` before compiled entry points, so that calling again with new parameter
     values reuses the compiled program (a Python float would be a static, hashed value), and so
-    that ``1.0`` and ``np.float64(1.0)`` share one trace. Python ints and bools stay static: they
-    may drive Python control flow in user functions.
+    that ``1.0`` and ``np.float64(1.0)`` share one trace. Weakly typed JAX values (a Python float
+    that ``jax.grad`` made an array) become strongly typed the same way, so that a derivative
+    traces the programs of the plain call (not a second variant). Python ints and bools stay
+    static: they may drive Python control flow in user functions.
     """
 
     def convert(x):
         if isinstance(x, (float, complex, np.ndarray, np.floating)):
             return jnp.asarray(x, dtype=jax.dtypes.canonicalize_dtype(np.result_type(x)))
+        if (isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.inexact)
+                and jax.typeof(x).weak_type):
+            return jax.lax.convert_element_type(x, x.dtype)
         return x
 
     return jax.tree.map(convert, tree)

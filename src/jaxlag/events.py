@@ -154,8 +154,12 @@ def _first(mask):
 @compilation.filter_jit
 def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_controller,
                    max_steps, adjoint, progress_meter, baumgarte, projection, events,
-                   max_segments, root_finder, check, tolerance):
-    """Integrate across releases, contacts and user events; see the module docstring."""
+                   max_segments, root_finder, check, tolerance, times_checked=False):
+    """Integrate across releases, contacts and user events; see the module docstring.
+
+    ``times_checked``: ``t0``, ``t1``, ``ts`` and ``dt0`` passed diffrax's input checks on the host
+    (the save times of every segment are ``ts`` clipped to the segment, so they pass them too):
+    the segment solves skip those compiled checks (see ``jaxlag.simulate``)."""
     from .simulate import EquationsOfMotion  # the vector field lives with simulate
 
     system.check(q0, qd0, t0, args)
@@ -182,25 +186,28 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
         this_solver = solver
         if projection is not None:
             this_solver = wrap_for_projection(solver, system, projection, adjoint, active)
-        solution = diffrax.diffeqsolve(
-            diffrax.ODETerm(EquationsOfMotion(system, baumgarte, active)),
-            this_solver,
-            t_s,
-            t1,
-            dt0,
-            (q, qd),
-            args,
-            saveat=diffrax.SaveAt(
-                subs=[diffrax.SubSaveAt(ts=jnp.clip(ts, t_s, t1)), diffrax.SubSaveAt(t1=True)],
-                controller_state=True,
-            ),
-            stepsize_controller=failures.guard(stepsize_controller),
-            adjoint=adjoint,
-            event=segment.diffrax_event(root_finder),
-            max_steps=max_steps,
-            throw=False,  # recorded in `failure`; simulate raises (jaxlag.failures)
-            progress_meter=progress_meter,
-        )
+        controller = failures.guard(stepsize_controller, times_checked)
+        with compilation.diffrax_checks_done_on_host(failures.skips_diffrax_checks(controller)):
+            solution = diffrax.diffeqsolve(
+                diffrax.ODETerm(EquationsOfMotion(system, baumgarte, active)),
+                this_solver,
+                t_s,
+                t1,
+                dt0,
+                (q, qd),
+                args,
+                saveat=diffrax.SaveAt(
+                    subs=[diffrax.SubSaveAt(ts=jnp.clip(ts, t_s, t1)),
+                          diffrax.SubSaveAt(t1=True)],
+                    controller_state=True,
+                ),
+                stepsize_controller=controller,
+                adjoint=adjoint,
+                event=segment.diffrax_event(root_finder),
+                max_steps=max_steps,
+                throw=False,  # recorded in `failure`; simulate raises (jaxlag.failures)
+                progress_meter=progress_meter,
+            )
         (saved_q, saved_qd), (final_q, final_qd) = solution.ys
         t_e = solution.ts[1][0]
         q_e, qd_e = final_q[0], final_qd[0]

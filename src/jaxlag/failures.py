@@ -69,7 +69,11 @@ class GuardState(eqx.Module):
     scale: Any  # time scale of the solve: max(|t0|, |t1|, t1 − t0)
 
 
-def _guarded_init(controller, terms, t0, t1, y0, dt0, args, func, error_order):
+def _guarded_init(controller, terms, t0, t1, y0, dt0, args, func, error_order, checked):
+    if checked:
+        # diffrax has checked its inputs by now: end the window of jaxlag.simulate's
+        # host-checked times, so that nothing traced from here on (the solver loop) is affected.
+        compilation.end_diffrax_prologue()
     tnext, inner = controller.init(terms, t0, t1, y0, dt0, args, func, error_order)
     q, qd = y0
     t0 = jnp.asarray(t0, q.dtype)
@@ -108,6 +112,10 @@ class FiniteStepGuard(diffrax.AbstractAdaptiveStepSizeController):
     """Wraps an adaptive controller: stop at a non-finite step of round-off size (see module)."""
 
     controller: diffrax.AbstractAdaptiveStepSizeController
+    # The solve's times were checked on the host (jaxlag.compilation.diffrax_checks_done_on_host):
+    # static, so that diffrax's cached trace of a solve without its compiled input checks never
+    # serves a solve that needs them.
+    times_checked: bool = eqx.field(static=True, default=False)
 
     @property
     def rtol(self):
@@ -122,10 +130,11 @@ class FiniteStepGuard(diffrax.AbstractAdaptiveStepSizeController):
         return self.controller.norm
 
     def wrap(self, direction):
-        return FiniteStepGuard(self.controller.wrap(direction))
+        return FiniteStepGuard(self.controller.wrap(direction), self.times_checked)
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
-        return _guarded_init(self.controller, terms, t0, t1, y0, dt0, args, func, error_order)
+        return _guarded_init(self.controller, terms, t0, t1, y0, dt0, args, func, error_order,
+                             self.times_checked)
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order,
                         controller_state):
@@ -137,12 +146,14 @@ class FiniteFixedStepGuard(diffrax.AbstractStepSizeController):
     """Wraps a non-adaptive controller (constant steps): stop at the first non-finite step."""
 
     controller: diffrax.AbstractStepSizeController
+    times_checked: bool = eqx.field(static=True, default=False)  # see FiniteStepGuard
 
     def wrap(self, direction):
-        return FiniteFixedStepGuard(self.controller.wrap(direction))
+        return FiniteFixedStepGuard(self.controller.wrap(direction), self.times_checked)
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
-        return _guarded_init(self.controller, terms, t0, t1, y0, dt0, args, func, error_order)
+        return _guarded_init(self.controller, terms, t0, t1, y0, dt0, args, func, error_order,
+                             self.times_checked)
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order,
                         controller_state):
@@ -150,14 +161,25 @@ class FiniteFixedStepGuard(diffrax.AbstractStepSizeController):
                               error_order, controller_state)
 
 
-def guard(controller):
+def guard(controller, times_checked: bool = False):
     """The controller wrapped in the matching guard (``StepTo`` stays as it is: diffrax ends its
-    loop by counting its steps; a non-finite result is then caught on the saved states)."""
-    if isinstance(controller, (FiniteStepGuard, FiniteFixedStepGuard, diffrax.StepTo)):
+    loop by counting its steps; a non-finite result is then caught on the saved states).
+    ``times_checked``: the solve's times passed diffrax's input checks on the host; the guard
+    then ends :func:`jaxlag.compilation.diffrax_checks_done_on_host` in its ``init``."""
+    if isinstance(controller, (FiniteStepGuard, FiniteFixedStepGuard)):
+        controller = controller.controller
+    if isinstance(controller, diffrax.StepTo):
         return controller
     if isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
-        return FiniteStepGuard(controller)
-    return FiniteFixedStepGuard(controller)
+        return FiniteStepGuard(controller, times_checked)
+    return FiniteFixedStepGuard(controller, times_checked)
+
+
+def skips_diffrax_checks(controller) -> bool:
+    """Whether a solve with this (guarded) controller compiles diffrax's input checks without
+    callbacks (:func:`jaxlag.compilation.diffrax_checks_done_on_host`)."""
+    return isinstance(controller, (FiniteStepGuard, FiniteFixedStepGuard)) and \
+        controller.times_checked
 
 
 def saving_guard_state(saveat: diffrax.SaveAt) -> diffrax.SaveAt:

@@ -155,7 +155,8 @@ def _push(run, static, adjoint, primals, tangents, axes, structure):
 
 def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
                                     choice: ForwardSensitivities, output_shapes: Any = None,
-                                    finish: Callable[[Any], Any] | None = None) -> Any:
+                                    finish: Callable[[Any], Any] | None = None,
+                                    prepare: Callable[[Any], Any] | None = None) -> Any:
     """``run(inputs, adjoint)``, reverse-differentiated as :class:`ForwardSensitivities` says.
 
     ``inputs`` is any pytree; its floating-point array leaves are the differentiable inputs.
@@ -164,18 +165,24 @@ def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
     ``output_shapes``: the output shapes of ``run`` if known (:func:`trace_outputs`; saves a
     trace). ``finish``: applied to the primal output (where its values are concrete when the
     caller is not being traced: ``simulate`` raises its failures there, on the host); it must not
-    change the values.
+    change the values. ``prepare``: applied to the (undifferentiated) inputs before ``run``, in
+    the same place (``simulate`` checks the initial state there, on the host when the values are
+    concrete, so that the pushed program carries no check); it must not change the values.
     """
     dynamic, static = _split_inexact(inputs)
     shapes = [(jnp.shape(x), jnp.result_type(x)) for x in jax.tree.leaves(dynamic)]
     structure = jax.tree.structure(dynamic)
     finish = finish or (lambda output: output)
+    prepare = prepare or (lambda full: full)
     # What the forward rule decided while tracing, read by the backward rule of the same trace
     # (residuals must be arrays): the size of each perturbed leaf, the output structure.
     decided: dict[str, Any] = {}
 
     def evaluate(values, adjoint):
         return _split_inexact(run(eqx.combine(values, static), adjoint))
+
+    def prepared(values):
+        return _split_inexact(prepare(eqx.combine(values, static)))[0]
 
     def finished(inexact, rest):
         return _split_inexact(finish(eqx.combine(inexact, rest)))
@@ -184,7 +191,7 @@ def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
     def call(values):
         # Not differentiated here (the rules below are): the primal runs with the inner adjoint,
         # whose trace trace_outputs and the forward rule share (an adjoint changes no value).
-        inexact, rest = finished(*evaluate(values, choice.inner))
+        inexact, rest = finished(*evaluate(prepared(values), choice.inner))
         return eqx.combine(inexact, rest)
 
     def forward(values):
@@ -194,6 +201,7 @@ def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
         primals = jax.tree.unflatten(structure, [
             leaf.value if isinstance(leaf.value, (jax.Array, np.ndarray)) else jnp.asarray(leaf.value)
             for leaf in leaves])
+        primals = prepared(primals)
         sizes = [math.prod(shape) if leaf.perturbed else 0
                  for leaf, (shape, _) in zip(leaves, shapes)]
         k = sum(sizes)

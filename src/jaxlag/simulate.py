@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import functools as ft
 from typing import Any
 
 import diffrax
@@ -73,6 +75,30 @@ class EquationsOfMotion(eqx.Module):
         return qd, qdd
 
 
+def _times_pass_diffrax_checks(t0, t1, dt0, saveat) -> bool:
+    """Whether the times are concrete and pass the checks ``diffrax.diffeqsolve`` compiles in for
+    them: ``(t1 − t0)·dt0 ≥ 0`` and every ``SaveAt`` time ordered along ``t0 → t1`` and inside
+    ``[t0, t1]``. Then the solve skips those compiled checks (their callbacks keep JAX from
+    caching the program; :func:`jaxlag.compilation.diffrax_checks_done_on_host`). Anything
+    traced or failing: False, and diffrax checks (and reports) as usual."""
+    subsaveats = jax.tree.leaves(saveat.subs, is_leaf=lambda x: isinstance(x, diffrax.SubSaveAt))
+    times = [t0, t1, dt0] + [sub.ts for sub in subsaveats]
+    if not _is_concrete(times):
+        return False
+    t0, t1 = float(np.asarray(t0)), float(np.asarray(t1))
+    if dt0 is not None and not (t1 - t0) * float(np.asarray(dt0)) >= 0:
+        return False
+    direction = 1.0 if t0 < t1 else -1.0
+    for sub in subsaveats:
+        if sub.ts is None:
+            continue
+        ts = np.asarray(sub.ts, dtype=np.float64).ravel() * direction
+        if not (np.all(np.diff(ts) >= 0) and np.all(ts >= t0 * direction)
+                and np.all(ts <= t1 * direction)):
+            return False
+    return True
+
+
 def _as_time(t, dtype):
     """A time as a 0-d array; concrete values stay on the host (NumPy) until the compiled call,
     which transfers them with the other inputs instead of one eager device operation each."""
@@ -83,7 +109,8 @@ def _as_time(t, dtype):
 
 @compilation.filter_jit
 def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat, max_steps,
-           adjoint, event, progress_meter, baumgarte, projection, check, tolerance):
+           adjoint, event, progress_meter, baumgarte, projection, check, tolerance,
+           times_checked=False):
     system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation
     if check:
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
@@ -93,22 +120,26 @@ def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, save
         solver = wrap_for_projection(solver, fast, projection, adjoint)
     # Failures are recorded (jaxlag.failures), not thrown by diffrax: simulate raises with the
     # numbers and a diagnosis instead of "max_steps reached" after 65,536 rejected NaN steps.
-    solution = diffrax.diffeqsolve(
-        diffrax.ODETerm(EquationsOfMotion(fast, baumgarte)),
-        solver,
-        t0,
-        t1,
-        dt0,
-        (q0, qd0),
-        args,
-        saveat=failures.saving_guard_state(saveat),
-        stepsize_controller=failures.guard(stepsize_controller),
-        adjoint=adjoint,
-        event=event,
-        max_steps=max_steps,
-        throw=False,
-        progress_meter=progress_meter,
-    )
+    # Times checked on the host: diffrax's compiled checks of them are left out (the window
+    # closes in the guard's init, before the solver loop is traced).
+    controller = failures.guard(stepsize_controller, times_checked)
+    with compilation.diffrax_checks_done_on_host(failures.skips_diffrax_checks(controller)):
+        solution = diffrax.diffeqsolve(
+            diffrax.ODETerm(EquationsOfMotion(fast, baumgarte)),
+            solver,
+            t0,
+            t1,
+            dt0,
+            (q0, qd0),
+            args,
+            saveat=failures.saving_guard_state(saveat),
+            stepsize_controller=controller,
+            adjoint=adjoint,
+            event=event,
+            max_steps=max_steps,
+            throw=False,
+            progress_meter=progress_meter,
+        )
     q, qd = solution.ys
     if projection is not None:
         # Saved values between steps come from the solver's interpolant: project them too.
@@ -137,6 +168,7 @@ class _Run(eqx.Module):
     event_root_finder: Any
     check: bool = eqx.field(static=True)
     tolerance: Any
+    times_checked: bool = eqx.field(static=True, default=False)
 
     def __call__(self, inputs, adjoint):
         (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller, baumgarte,
@@ -146,13 +178,14 @@ class _Run(eqx.Module):
                 system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_controller,
                 self.max_steps, adjoint, self.progress_meter, baumgarte, projection, events,
                 self.max_segments, self.event_root_finder, self.check, self.tolerance,
+                self.times_checked,
             )
             return Trajectory.from_states(system, ts_out, q, qd, args, active=active, events=log,
                                           failure=failure)
         return _solve(
             system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat,
             self.max_steps, adjoint, event, self.progress_meter, baumgarte, projection, self.check,
-            self.tolerance,
+            self.tolerance, self.times_checked,
         )
 
 
@@ -293,7 +326,8 @@ def simulate(
         event_root_finder = default_root_finder()
 
     run = _Run(segmented, max_steps, progress_meter, int(max_segments), event_root_finder,
-               check_in_jit, constraint_tolerance)
+               check_in_jit, constraint_tolerance,
+               _times_pass_diffrax_checks(t0, t1, dt0, saveat))
 
     inputs = (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller,
               baumgarte, projection, events, event)
@@ -302,14 +336,22 @@ def simulate(
         # caller's grad captured in L)? A custom_vjp cannot see it, so the checkpointed adjoint
         # then differentiates the simulation as it stands. The trace also gives the output
         # shapes the forward-sensitivity rule needs.
-        captured, shapes = trace_outputs(run, inputs, adjoint.inner)
+        # The initial state is checked inside the custom_vjp, before the run, where the values
+        # are concrete unless the caller itself is being traced: on the host then, and the
+        # program of the forward sensitivities carries no check (JAX can cache it on disk).
+        unchecked = dataclasses.replace(run, check=False)
+        captured, shapes = trace_outputs(unchecked, inputs, adjoint.inner)
         if captured:
             trajectory = run(inputs, adjoint.fallback)
         else:
             # Failures are raised inside the custom_vjp, where the record is concrete (host-side
             # check, no compiled check) unless the caller itself is being traced.
             finish = (lambda tr: _raise_if_failed(tr, tr.system, tr.args)) if throw else None
-            return call_with_forward_sensitivities(run, inputs, adjoint, shapes, finish)
+            prepare = None
+            if run.check:
+                prepare = ft.partial(_checked_initial_state, tolerance=constraint_tolerance)
+            return call_with_forward_sensitivities(unchecked, inputs, adjoint, shapes, finish,
+                                                   prepare)
     elif isinstance(adjoint, ForwardSensitivities):
         # No traced input; a user function may still close over a value of the caller's grad,
         # which the fallback (reverse-mode) adjoint differentiates.
@@ -317,6 +359,14 @@ def simulate(
     else:
         trajectory = run(inputs, adjoint)
     return _raise_if_failed(trajectory, system, args) if throw else trajectory
+
+
+def _checked_initial_state(inputs, tolerance):
+    """``inputs`` with ``(q0, qd0)`` checked (:func:`~jaxlag.checks.validate_initial_state`:
+    raises here for concrete values, compiles the check in otherwise)."""
+    system, q0, qd0, t0, _, _, _, args = inputs[:8]
+    q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
+    return (system, q0, qd0) + tuple(inputs[3:])
 
 
 def _raise_if_failed(trajectory: Trajectory, system: System, args) -> Trajectory:
