@@ -191,3 +191,21 @@ def test_bad_input():
     with pytest.raises(ValueError, match="transforms"):
         jl.fit(PENDULUM, START, jl.Experiment(TS, observed, Q0, QD0), observe=bob,
                transforms={"m": jl.Positive()})
+
+
+def test_failures_during_a_fit_are_raised_from_the_host():
+    """The least-squares program returns its checks and the host raises them (no callback in the
+    program, so JAX's persistent cache can store it): a simulation that fails at the parameters
+    being tried, and an initial state the projection cannot bring onto the constraints."""
+    observed = observe_bob(TRUE)
+    with pytest.raises(jl.SimulationError, match=r"jl.fit, experiment 1, at parameters .*max_steps"):
+        jl.fit(PENDULUM, START, [jl.Experiment(TS[:5], observed[:5], Q0, QD0),
+                                 jl.Experiment(TS[:5] * 20, observed[:5], Q0, QD0)],
+               observe=bob, simulate_kwargs={"max_steps": 64})
+    # A bead that should sit at distance l from the pivot, but the constraint |x| = −l has no
+    # solution for l > 0: the projection of the initial state fails.
+    bead = jl.System(lambda q, qd, args: 0.5 * jnp.sum(qd**2) - args["g"] * q[1],
+                     holonomic=lambda q, args: jnp.array([jnp.sum(q**2) + args["l"] ** 2]))
+    with pytest.raises(ValueError, match="jl.fit, experiment 0: consistent_initial_state"):
+        jl.fit(bead, START, jl.Experiment(TS[:5], observed[:5], jnp.array([0.5, -0.5]),
+                                          jnp.zeros(2)), observe=lambda q, qd: q)

@@ -45,7 +45,9 @@ from . import compilation
 from .conventions import wrap_state_function
 from .sensitivities import ForwardSensitivities
 from .simulate import simulate
-from .stabilization import consistent_initial_state
+from . import failures
+from .stabilization import (consistent_initial_state, position_failure_message,
+                            projection_with_residuals)
 
 
 # ----------------------------------------------------------------------------- reparameterization
@@ -208,24 +210,39 @@ class _Model(eqx.Module):
                     jnp.concatenate([fixed_states[1], free["later"][1]], axis=1))
         return fixed_states
 
-    def observations_of(self, params, data, states, adjoint):
+    def observations_of(self, params, data, states, adjoint, health=False):
+        """The observations of every segment, their end states, and (``health=True``) what the
+        host must check afterwards instead of checks compiled into the program: the simulation
+        failure records and the residual of the initial-state projection, shape (E, S) each.
+        The save times were checked on the host (``fit`` checks its data once)."""
         args = {**data["fixed"], **params}
 
         def one_segment(ts, q0, qd0):
+            kwargs = dict(self.simulate_kwargs)
+            residual = jnp.zeros((), q0.dtype)
             if self.system.is_constrained:
-                q0, qd0 = consistent_initial_state(self.system, q0, qd0, ts[0], args)
-            traj = simulate(self.system, q0, qd0, ts, args=args, adjoint=adjoint,
-                            **dict(self.simulate_kwargs))
+                if health:
+                    q0, qd0, residual, _ = projection_with_residuals(self.system, q0, qd0, ts[0],
+                                                                     args)
+                else:
+                    q0, qd0 = consistent_initial_state(self.system, q0, qd0, ts[0], args)
+            if health:  # projected states are on the manifold: the failure record covers the rest
+                kwargs.update(throw=False, check_times=False, check_initial_state=False)
+            traj = simulate(self.system, q0, qd0, ts, args=args, adjoint=adjoint, **kwargs)
             y = jax.vmap(lambda q, qd, t: self.observe(q, qd, t=t, args=args))(traj.q, traj.qd, ts)
-            return y, traj.q[-1], traj.qd[-1]
+            return y, traj.q[-1], traj.qd[-1], (traj.failure, residual)
 
         # states: (E, S, n) each; ts_seg: (E, S, m + 1)
-        return jax.vmap(jax.vmap(one_segment))(data["ts_seg"], states[0], states[1])
+        y, q_end, qd_end, checks = jax.vmap(jax.vmap(one_segment))(data["ts_seg"], states[0],
+                                                                   states[1])
+        return (y, q_end, qd_end, checks) if health else (y, q_end, qd_end)
 
-    def residuals(self, free, data, fixed_states, adjoint):
+    def residuals(self, free, data, fixed_states, adjoint, health=False):
+        """The weighted residuals; with ``health=True`` also the checks of
+        :meth:`observations_of` (the host raises with :func:`_raise_for_health`)."""
         params = self.physical(free["params"])
         states = self.states(free, fixed_states)
-        y, q_end, qd_end = self.observations_of(params, data, states, adjoint)
+        y, q_end, qd_end, *checks = self.observations_of(params, data, states, adjoint, health)
         # Stitch segments back to the save grid: drop each later segment's first (shared) point.
         e = y.shape[0]
         rest = y[:, 1:, 1:].reshape(e, -1, y.shape[-1])
@@ -244,28 +261,62 @@ class _Model(eqx.Module):
                 gap = gap.at[..., index].set(wrapped)
             pieces.append((w * gap).ravel())
             pieces.append((w * (qd_end[:, :-1] - states[1][:, 1:])).ravel())
-        return jnp.concatenate(pieces)
+        r = jnp.concatenate(pieces)
+        return (r, checks[0]) if health else r
 
 
-@compilation.filter_jit
 def _residuals_and_jacobian(model, free, data, fixed_states):
     """``(r, J, y)``: the residuals at the free variables ``free``, their Jacobian with respect to
     the raveled free variables ``y`` (``jax.flatten_util.ravel_pytree`` order) and ``y``.
 
     Forward mode, one tangent per free scalar under ``vmap`` (the primal solve is not batched,
     so it runs once). This is the one large program of a least-squares fit: the optimizer's own
-    step only sees the linear model built from it (:func:`_linear_model`).
+    step only sees the linear model built from it (:func:`_linear_model`). Its checks (a failed
+    simulation, an initial state that cannot be projected) are returned and raised here, on the
+    host: the program has no host callback, so JAX's persistent cache stores it.
     """
+    r, jacobian, flat, checks = _linearize(model, free, data, fixed_states)
+    _raise_for_health(model, checks, model.physical(free["params"]), data)
+    return r, jacobian, flat
+
+
+@compilation.filter_jit
+def _linearize(model, free, data, fixed_states):
     flat, unravel = ravel_pytree(free)
 
     def residuals(y):
-        return model.residuals(unravel(y), data, fixed_states, diffrax.ForwardMode())
+        return model.residuals(unravel(y), data, fixed_states, diffrax.ForwardMode(), health=True)
 
     def push(direction):
-        return jax.jvp(residuals, (flat,), (direction,))
+        return jax.jvp(residuals, (flat,), (direction,), has_aux=True)
 
-    r, columns = jax.vmap(push, out_axes=(None, 0))(jnp.eye(flat.shape[0], dtype=flat.dtype))
-    return r, columns.T, flat
+    r, columns, checks = jax.vmap(push, out_axes=(None, 0, None))(
+        jnp.eye(flat.shape[0], dtype=flat.dtype))
+    return r, columns.T, flat, checks
+
+
+def _raise_for_health(model, checks, params, data) -> None:
+    """Raise what the checks of :meth:`_Model.observations_of` found (host side): an initial
+    state the projection could not bring onto the constraint manifold (``ValueError``, as
+    :func:`~jaxlag.consistent_initial_state`), or a failed simulation (``SimulationError``, with
+    the diagnosis at the parameters being tried)."""
+    failure, residual = jax.device_get(checks)
+    residual = np.asarray(residual)
+    tolerance = 1e-10 if residual.dtype == np.float64 else float(np.finfo(residual.dtype).eps) ** 0.5
+    where = lambda index: (f"experiment {index[0]}" if model.segments == 1  # noqa: E731
+                           else f"experiment {index[0]}, shooting segment {index[1]}")
+    bad = np.argwhere(~(residual <= tolerance))
+    if bad.size:
+        raise ValueError(f"jl.fit, {where(tuple(bad[0]))}: "
+                         + position_failure_message(tolerance, residual.dtype))
+    failed = np.argwhere(np.asarray(failure.code) != failures.NONE)
+    if failed.size:
+        index = tuple(failed[0])
+        args = jax.device_get({**data["fixed"], **params})
+        text = failures.describe(failures.member(failure, index), model.system, args)
+        raise failures.SimulationError(
+            f"jl.fit, {where(index)}, at parameters "
+            + ", ".join(f"{k}={np.asarray(v)}" for k, v in params.items()) + ": " + text)
 
 
 def _linear_model(free, linearization):

@@ -210,6 +210,7 @@ def simulate(
     baumgarte: Baumgarte | None = None,
     projection: Projection | None | str = _AUTO,
     check_initial_state: bool = True,
+    check_times: bool = True,
     constraint_tolerance: float | None = None,
     events=(),
     max_segments: int = 8,
@@ -224,6 +225,11 @@ def simulate(
     - ``ts``: increasing save times; the integration runs from ``ts[0]`` to ``ts[-1]``.
       Alternatively give ``t0``, ``t1`` and a ``diffrax.SaveAt``.
     - ``args``: parameters (any pytree) passed to every user function that declares ``args``.
+    - ``check_times``: traced ``ts`` (inside ``jit``/``vmap``) are checked to increase inside the
+      compiled program (and diffrax checks its save times there too). Pass ``False`` when you
+      have checked them yourself, as ``jl.fit`` does once on the host: the program then has no
+      host callback for them, so JAX's persistent cache can store it. Concrete ``ts`` are
+      always checked, on the host.
 
     Every diffrax option passes through unchanged: ``solver`` (default ``diffrax.Tsit5()``),
     ``stepsize_controller`` (default ``diffrax.PIDController(rtol=1e-10, atol=1e-10)``, in
@@ -262,6 +268,9 @@ def simulate(
     q0, qd0 = as_float_state(q0, qd0)
     args = _as_array_leaves(args)
     user_saveat = saveat is not None
+    # Times the caller vouches for (check_times=False): only the plain form, ts alone.
+    vouched = (not check_times and ts is not None and not user_saveat and t0 is None
+               and t1 is None and (dt0 is None or (_is_concrete(dt0) and float(dt0) >= 0)))
     if ts is not None:
         ts = jnp.asarray(ts, dtype=q0.dtype)
         if ts.ndim != 1 or ts.shape[0] < 1:
@@ -272,7 +281,7 @@ def simulate(
             text = _save_times_message(ends)
             if text is not None:
                 raise ValueError(text)
-        else:  # traced save times: the same check, compiled in
+        elif check_times:  # traced save times: the same check, compiled in
             ts = failures.raise_from_program(ts, ~jnp.all(jnp.diff(ts) > 0), _SAVE_TIMES, ts)
         t0 = ends[0] if t0 is None else t0
         t1 = ends[-1] if t1 is None else t1
@@ -327,7 +336,7 @@ def simulate(
 
     run = _Run(segmented, max_steps, progress_meter, int(max_segments), event_root_finder,
                check_in_jit, constraint_tolerance,
-               _times_pass_diffrax_checks(t0, t1, dt0, saveat))
+               vouched or _times_pass_diffrax_checks(t0, t1, dt0, saveat))
 
     inputs = (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller,
               baumgarte, projection, events, event)

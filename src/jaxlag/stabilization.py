@@ -26,6 +26,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import compilation
 from . import constraints as _constraints
@@ -236,27 +237,51 @@ def consistent_initial_state(system, q0, qd0, t0=0.0, args=None, *, fixed_q=(), 
                              free_q, free_qd)
 
 
+_POSITION_MESSAGE = (
+    "consistent_initial_state: Newton projection did not reach the constraint manifold within "
+    "tolerance {tolerance:g} (constraints inconsistent, the starting guess too far from any "
+    "solution, or too many coordinates held fixed; state dtype {dtype})."
+)
+
+
+def projection_with_residuals(system, q0, qd0, t0, args, newton_steps=20, free_q=None,
+                              free_qd=None):
+    """``(q, qd, position_residual, velocity_residual)``: the projection of
+    :func:`consistent_initial_state` without its checks, and what they test: ``max |f(q)|`` and
+    (with ``free_qd``) ``max |(ḟ, g)|`` (zeros where there is nothing to test). For callers that
+    check on the host after their program has run (``jl.fit``): no host callback is compiled."""
+    q, qd = project_state(system, q0, qd0, t0, args, newton_steps, refresh_mass=True,
+                          free_q=free_q, free_qd=free_qd)
+    zero = jnp.zeros((), q.dtype)
+    position = zero
+    if system.holonomic is not None:
+        f = _constraints.holonomic_residual(system, q, t0, args)
+        position = jnp.max(jnp.abs(f), initial=0.0)
+    velocity = zero
+    if free_qd is not None:
+        _, f_dot, g = _constraints.constraint_residuals(system, q, qd, t0, args)
+        velocity = jnp.max(jnp.abs(jnp.concatenate([f_dot, g])), initial=0.0)
+    return q, qd, position, velocity
+
+
+def position_failure_message(tolerance, dtype) -> str:
+    """The error of :func:`consistent_initial_state` when the positions stay off the manifold."""
+    return _POSITION_MESSAGE.format(tolerance=tolerance, dtype=np.dtype(dtype))
+
+
 # One compiled program per system and shapes: eager, the Newton loop would dispatch (and compile)
 # every small operation separately.
 @compilation.filter_jit
 def _consistent_state(system, q0, qd0, t0, args, newton_steps, tolerance, free_q, free_qd):
-    q, qd = project_state(system, q0, qd0, t0, args, newton_steps, refresh_mass=True,
-                          free_q=free_q, free_qd=free_qd)
+    q, qd, position, velocity = projection_with_residuals(system, q0, qd0, t0, args,
+                                                          newton_steps, free_q, free_qd)
     if system.holonomic is not None:
-        f = _constraints.holonomic_residual(system, q, t0, args)
-        q = eqx.error_if(
-            q,
-            ~(jnp.max(jnp.abs(f)) <= tolerance),
-            "consistent_initial_state: Newton projection did not reach the constraint manifold "
-            f"within tolerance {tolerance:g} (constraints inconsistent, the starting guess too far "
-            f"from any solution, or too many coordinates held fixed; state dtype {q0.dtype}).",
-        )
+        q = eqx.error_if(q, ~(position <= tolerance),
+                         position_failure_message(tolerance, q0.dtype))
     if free_qd is not None:
-        _, f_dot, g = _constraints.constraint_residuals(system, q, qd, t0, args)
-        residual = jnp.concatenate([f_dot, g])
         qd = eqx.error_if(
             qd,
-            ~(jnp.max(jnp.abs(residual), initial=0.0) <= tolerance),
+            ~(velocity <= tolerance),
             "consistent_initial_state: the velocity constraints cannot hold with the velocities "
             "in fixed_qd held (too many held, or incompatible values).",
         )
