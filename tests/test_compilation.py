@@ -215,16 +215,40 @@ def test_diffrax_checks_stay_where_jaxlag_did_not_check_on_the_host():
     assert _errors.branched_error_if is original
 
 
-def test_a_check_inside_the_equations_of_motion_still_raises():
-    """The window in which diffrax's input checks compile without callbacks closes before the
-    solver loop is traced: an ``eqx.error_if`` in a user's Lagrangian raises, not NaN."""
+@pytest.mark.parametrize("helper", ["inline", "jitted"])
+def test_a_check_inside_the_equations_of_motion_still_raises(helper):
+    """The window in which diffrax's input checks compile without callbacks does not reach user
+    code (closed before the solver loop, suspended while diffrax traces the vector field for its
+    shape check): an ``eqx.error_if`` in a user's Lagrangian raises, also inside a user's
+    ``jax.jit`` helper, whose trace JAX caches."""
     import equinox as eqx
 
+    def in_range(q):
+        return eqx.error_if(q, q[0] > 0.4, "the angle left the model's range")
+
+    check = jax.jit(in_range) if helper == "jitted" else in_range
+
     def lagrangian(q, qd, args):
-        q = eqx.error_if(q, q[0] > 0.4, "the angle left the model's range")
+        q = check(q)
         return 0.5 * qd[0] ** 2 + args["g"] * jnp.cos(q[0])
 
     system = jl.System(lagrangian)
     with pytest.raises(Exception, match="the angle left the model's range"):
         jax.block_until_ready(jl.simulate(system, jnp.array([0.3]), jnp.array([1.0]),
                                           jnp.linspace(0.0, 1.0, 5), args={"g": 9.81}).q)
+
+
+def test_user_code_traced_in_the_window_keeps_its_checks():
+    """Inside the window, code traced under ``outside_diffrax_prologue`` (jaxlag's vector field:
+    the user's functions) keeps equinox's checks, and a ``jax.jit`` of theirs first traced
+    there still raises later (JAX caches that trace)."""
+    import equinox as eqx
+
+    from jaxlag import compilation
+
+    check = jax.jit(lambda q: eqx.error_if(q, q[0] > 0.4, "out of range"))
+    with compilation.diffrax_checks_done_on_host(True):
+        with compilation.outside_diffrax_prologue():
+            jax.eval_shape(check, jnp.zeros(1))
+    with pytest.raises(Exception, match="out of range"):
+        jax.block_until_ready(check(jnp.ones(1)))

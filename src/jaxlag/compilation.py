@@ -189,7 +189,9 @@ def diffrax_checks_done_on_host(enabled: bool = True):
     call outside the window.
 
     The switch replaces equinox's module-level ``branched_error_if`` (which ``eqx.error_if``
-    calls), so it is held for the shortest window that covers those checks: it ends at
+    calls), so it is held for the shortest window that covers those checks (suspended while
+    diffrax traces the vector field for its shape check, :func:`outside_diffrax_prologue`): it
+    ends at
     :func:`end_diffrax_prologue`, which jaxlag's step-size guard calls first thing in its
     ``init`` (diffrax initializes the controller right after checking its inputs; the solver
     loop is traced after that, with equinox restored), or at the end of the context. A user's
@@ -216,6 +218,27 @@ def diffrax_checks_done_on_host(enabled: bool = True):
         finally:
             while len(_prologue_saved) > depth:
                 end_diffrax_prologue()
+
+
+@contextlib.contextmanager
+def outside_diffrax_prologue():
+    """Suspend an active :func:`diffrax_checks_done_on_host` window while user code is traced.
+
+    diffrax evaluates the vector field abstractly inside its prologue (a shape check): the
+    user's Lagrangian and everything it calls must see equinox as it is, or a ``jax.jit`` helper
+    of theirs with an ``eqx.error_if`` would be traced (and cached by JAX) without its check.
+    jaxlag's vector field wraps its evaluation in this context."""
+    module = _equinox_errors()
+    with _PROLOGUE_LOCK:
+        if not _prologue_saved or module is None:
+            yield
+            return
+        patched = module.branched_error_if
+        module.branched_error_if = _prologue_saved[-1]
+        try:
+            yield
+        finally:
+            module.branched_error_if = patched
 
 
 def end_diffrax_prologue() -> None:

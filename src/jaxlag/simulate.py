@@ -66,12 +66,14 @@ class EquationsOfMotion(eqx.Module):
 
     def __call__(self, t, y, args):
         q, qd = y
-        if self.system.is_constrained:
-            qdd = accelerations_and_multipliers(
-                self.system, q, qd, t, args, self.baumgarte, self.active
-            )[0]
-        else:
-            qdd = unconstrained_accelerations(self.system, q, qd, t, args)
+        # User code is traced with equinox as it is, also inside diffrax's prologue.
+        with compilation.outside_diffrax_prologue():
+            if self.system.is_constrained:
+                qdd = accelerations_and_multipliers(
+                    self.system, q, qd, t, args, self.baumgarte, self.active
+                )[0]
+            else:
+                qdd = unconstrained_accelerations(self.system, q, qd, t, args)
         return qd, qdd
 
 
