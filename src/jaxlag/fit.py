@@ -46,8 +46,8 @@ from .conventions import wrap_state_function
 from .sensitivities import ForwardSensitivities
 from .simulate import simulate
 from . import failures
-from .stabilization import (consistent_initial_state, position_failure_message,
-                            projection_with_residuals)
+from .stabilization import (consistent_initial_state, default_projection_tolerance,
+                            position_failure_message, projection_with_residuals)
 
 
 # ----------------------------------------------------------------------------- reparameterization
@@ -302,9 +302,12 @@ def _raise_for_health(model, checks, params, data) -> None:
     the diagnosis at the parameters being tried)."""
     failure, residual = jax.device_get(checks)
     residual = np.asarray(residual)
-    tolerance = 1e-10 if residual.dtype == np.float64 else float(np.finfo(residual.dtype).eps) ** 0.5
-    where = lambda index: (f"experiment {index[0]}" if model.segments == 1  # noqa: E731
-                           else f"experiment {index[0]}, shooting segment {index[1]}")
+    tolerance = default_projection_tolerance(residual.dtype)
+
+    def where(index):
+        return (f"experiment {index[0]}" if model.segments == 1
+                else f"experiment {index[0]}, shooting segment {index[1]}")
+
     bad = np.argwhere(~(residual <= tolerance))
     if bad.size:
         raise ValueError(f"jl.fit, {where(tuple(bad[0]))}: "

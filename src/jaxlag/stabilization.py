@@ -226,8 +226,7 @@ def consistent_initial_state(system, q0, qd0, t0=0.0, args=None, *, fixed_q=(), 
     q0 = jnp.asarray(q0, dtype=jnp.result_type(float))
     qd0 = jnp.asarray(qd0, dtype=q0.dtype)
     if tolerance is None:
-        eps = float(jnp.finfo(q0.dtype).eps)
-        tolerance = 1e-10 if eps <= float(jnp.finfo(jnp.float64).eps) else eps ** 0.5
+        tolerance = default_projection_tolerance(q0.dtype)
     system.check(q0, qd0, t0, args)
     n = q0.shape[0]
     free_q = _free_mask(fixed_q, n, q0.dtype, "fixed_q")
@@ -262,6 +261,13 @@ def projection_with_residuals(system, q0, qd0, t0, args, newton_steps=20, free_q
         _, f_dot, g = _constraints.constraint_residuals(system, q, qd, t0, args)
         velocity = jnp.max(jnp.abs(jnp.concatenate([f_dot, g])), initial=0.0)
     return q, qd, position, velocity
+
+
+def default_projection_tolerance(dtype) -> float:
+    """The default ``tolerance`` of :func:`consistent_initial_state`: 1e-10 in float64, ``√ε``
+    of lower precisions (3.5e-4 in float32)."""
+    eps = float(jnp.finfo(dtype).eps)
+    return 1e-10 if eps <= float(jnp.finfo(jnp.float64).eps) else eps ** 0.5
 
 
 def position_failure_message(tolerance, dtype) -> str:
