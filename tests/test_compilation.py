@@ -252,3 +252,54 @@ def test_user_code_traced_in_the_window_keeps_its_checks():
             jax.eval_shape(check, jnp.zeros(1))
     with pytest.raises(Exception, match="out of range"):
         jax.block_until_ready(check(jnp.ones(1)))
+
+
+def _hundred_before(x):
+    import equinox.internal as eqxi
+
+    for _ in range(100):
+        x = eqxi.prevbefore(x)
+    return x
+
+
+def test_ulp_chains_as_loops_is_bit_for_bit_equinox():
+    """diffrax's t1 − 100 ULPs, computed as one loop inside the window: the same bits for every
+    kind of float (zeros, denormal territory, negative, infinities, NaN), under jit, and the
+    same tangent (identity) under jvp and vmap; equinox is restored afterwards."""
+    import equinox.internal as eqxi
+
+    original = eqxi.prevbefore
+    tiny = np.finfo(np.float64).tiny
+    xs = jnp.array([2.0, 1.0, -3.5, 0.0, -0.0, tiny, 50 * tiny, -tiny, 1e-320, np.inf,
+                    -np.inf, np.nan, np.finfo(np.float64).max, 1e300])
+    want = jax.jit(jax.vmap(_hundred_before))(xs)
+    with jl.compilation.ulp_chains_as_loops():
+        assert eqxi.prevbefore is not original
+        got = jax.jit(jax.vmap(_hundred_before))(xs)
+        primal, tangent = jax.jit(lambda x: jax.jvp(_hundred_before, (x,), (jnp.ones_like(x),)))(xs)
+        hlo = jax.jit(_hundred_before).lower(2.0).as_text()
+    assert eqxi.prevbefore is original
+    np.testing.assert_array_equal(np.asarray(got).view(np.int64), np.asarray(want).view(np.int64))
+    np.testing.assert_array_equal(np.asarray(primal).view(np.int64),
+                                  np.asarray(want).view(np.int64))
+    np.testing.assert_array_equal(tangent, np.ones(xs.shape))
+    assert hlo.count("stablehlo.while") >= 1 and hlo.count("next_after") + hlo.count("compare") < 100
+
+
+def test_solves_are_unchanged_by_ulp_loops():
+    """A diffrax solve first traced inside the window gives the same bits as one traced outside
+    it (shapes used by no other test, so that diffrax's trace cache serves neither), and its
+    program holds no chain of 100 prevbefore steps."""
+    term = diffrax.ODETerm(lambda t, y, args: -args * y)
+    solve = lambda y0, a: diffrax.diffeqsolve(  # noqa: E731
+        term, diffrax.Tsit5(), 0.0, 1.3, 0.1, y0, args=a,
+        saveat=diffrax.SaveAt(ts=jnp.linspace(0.0, 1.3, 7)),
+        stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8)).ys
+    y0 = jnp.array([1.0, 2.0, 0.25])
+    with jl.compilation.ulp_chains_as_loops():
+        hlo = jax.jit(solve).lower(y0, 0.7).as_text()
+        got = jax.jit(solve)(y0, 0.7)
+    want = jax.jit(solve)(y0[None, :], 0.7)
+    np.testing.assert_array_equal(got, want[:, 0, :])
+    assert hlo.count("next_after") < 100
+    assert jax.jit(solve).lower(y0[None, :], 0.7).as_text().count("next_after") >= 100

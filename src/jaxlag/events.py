@@ -187,7 +187,8 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
         if projection is not None:
             this_solver = wrap_for_projection(solver, system, projection, adjoint, active)
         controller = failures.guard(stepsize_controller, times_checked)
-        with compilation.diffrax_checks_done_on_host(failures.skips_diffrax_checks(controller)):
+        with (compilation.diffrax_checks_done_on_host(failures.skips_diffrax_checks(controller)),
+              compilation.ulp_chains_as_loops()):
             solution = diffrax.diffeqsolve(
                 diffrax.ODETerm(EquationsOfMotion(system, baumgarte, active)),
                 this_solver,

@@ -125,7 +125,8 @@ def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, save
     # Times checked on the host: diffrax's compiled checks of them are left out (the window
     # closes in the guard's init, before the solver loop is traced).
     controller = failures.guard(stepsize_controller, times_checked)
-    with compilation.diffrax_checks_done_on_host(failures.skips_diffrax_checks(controller)):
+    with (compilation.diffrax_checks_done_on_host(failures.skips_diffrax_checks(controller)),
+          compilation.ulp_chains_as_loops()):
         solution = diffrax.diffeqsolve(
             diffrax.ODETerm(EquationsOfMotion(fast, baumgarte)),
             solver,
