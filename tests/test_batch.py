@@ -237,3 +237,28 @@ def test_memory_grows_linearly_in_the_batch(kind):
             added = batch - 16
             assert stats[batch]["temp"] - stats[16]["temp"] >= added * 2 * state, (batch, stats)
             assert total[batch] - total[16] <= added * 20 * saved, (batch, total)
+
+
+def test_batch_checks_on_the_host_name_the_member():
+    """Concrete batches are checked on the host (the program returns the diagnostics): a member
+    off the constraint manifold is named with simulate's message, as are bad save times; under
+    an enclosing jit the checks are compiled in and raise too."""
+    system = jl.System(lambda q, qd, args: 0.5 * (qd @ qd) - args["g"] * q[1],
+                       holonomic=lambda q, args: jnp.array([q @ q - 1.0]))
+    q0s = jnp.array([[0.0, -1.0], [0.6, -0.8], [0.6, -0.9], [1.0, 0.0]])
+    ts = jnp.linspace(0.0, 0.5, 6)
+    args = {"g": 9.81}
+    with pytest.raises(ValueError, match=r"1 of 4 batch members failed \(first: member \[2\]\)"
+                                         r".*(constraint|manifold|violat)"):
+        jl.simulate_batch(system, q0s, jnp.zeros(2), ts, args=args)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        jl.simulate_batch(system, q0s[:2], jnp.zeros(2), ts[::-1], args=args)
+    good = jl.simulate_batch(system, q0s[jnp.array([0, 1, 3])], jnp.zeros(2), ts, args=args)
+    np.testing.assert_allclose(jnp.sum(good.q**2, axis=-1), 1.0, atol=1e-9)
+    with pytest.raises(Exception, match=r"member \[2\]"):
+        jax.block_until_ready(jax.jit(
+            lambda q: jl.simulate_batch(system, q, jnp.zeros(2), ts, args=args).q)(q0s))
+    # check_initial_state=False is respected: no diagnostics, the member just runs.
+    traj = jl.simulate_batch(system, q0s, jnp.zeros(2), ts, args=args,
+                             check_initial_state=False, throw=False)
+    assert traj.q.shape == (4, 6, 2)

@@ -157,6 +157,8 @@ def test_persistent_cache_in_the_user_cache_directory(tmp_path):
         "    return jl.simulate(s, jnp.array([1.0]), jnp.zeros(1), ts, args={'k': k}, throw=False,"
         " check_initial_state=False, check_times=False).q\n"
         "jax.jit(user_program)(1.0, jnp.linspace(0, 1, 3)).block_until_ready()\n"
+        "jl.simulate_batch(s, jnp.ones((2, 1)), jnp.zeros(1), jnp.linspace(0, 1, 3), "
+        "args={'k': 1.0}).q.block_until_ready()\n"
         "print(jax.config.jax_compilation_cache_dir, len(hits))\n"
     )
     env = {k: v for k, v in os.environ.items()
@@ -173,10 +175,10 @@ def test_persistent_cache_in_the_user_cache_directory(tmp_path):
     directory, hits = run()  # (a program compiled twice in one process may already hit)
     assert directory == str(tmp_path / "jaxlag" / "jax")
     # The solver programs are stored too (JAX refuses programs with host callbacks): the solve,
-    # the forward sensitivities of jax.grad, and a user's jit of simulate without checks (file
-    # names start with the program's name).
+    # the forward sensitivities of jax.grad, a user's jit of simulate without checks, and
+    # simulate_batch (file names start with the program's name).
     stored = [entry.name for entry in os.scandir(directory)]
-    for program in ("jit__solve-", "jit__push-", "jit_user_program-"):
+    for program in ("jit__solve-", "jit__push-", "jit_user_program-", "jit__run_batch-"):
         assert any(name.startswith(program) for name in stored), (program, stored)
     assert run()[1] > hits  # the second process reads what the first wrote
     assert run(JAXLAG_COMPILATION_CACHE="0")[0] == "None"

@@ -46,13 +46,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from . import checks
 from . import compilation
 from . import failures
 from .checks import _is_concrete
 from .conventions import as_array_leaves, as_float_state
 from .ensemble_entry import ensemble_by_default as _ensemble_by_default
 from .ensemble_entry import run_ensemble
-from .simulate import simulate
+from .simulate import _save_times_message, simulate
 from .system import System
 from .trajectory import Trajectory
 
@@ -149,12 +150,18 @@ def _constrain(tree, sharding):
 
 @compilation.filter_jit
 def _run_batch(system, q0, qd0, ts, batched_args, shared_args, q_axis, qd_axis, kwargs,
-               out_sharding):
+               out_sharding, initial_check):
+    """The vmapped simulation; with ``initial_check = (t0, tolerance)`` also every member's
+    initial-state diagnostics, returned as values for the host to raise (no callback)."""
     def one(q, qd, member_args):
         member_args = eqx.combine(member_args, shared_args)
-        return simulate(system, q, qd, ts, args=member_args, **kwargs)
+        traj = simulate(system, q, qd, ts, args=member_args, **kwargs)
+        if initial_check is None:
+            return traj, None
+        t0, tolerance = initial_check
+        return traj, checks.initial_state_diagnostics(system, q, qd, t0, member_args, tolerance)
 
-    out = jax.vmap(one, in_axes=(q_axis, qd_axis, 0))(q0, qd0, batched_args)
+    out, diagnostics = jax.vmap(one, in_axes=(q_axis, qd_axis, 0))(q0, qd0, batched_args)
     if out_sharding is not None:
         # The inputs arrive sharded along the batch axis; XLA's SPMD partitioner propagates that
         # through the vmapped program, so each device integrates its slice. (The batched solver
@@ -162,7 +169,7 @@ def _run_batch(system, q0, qd0, ts, batched_args, shared_args, q_axis, qd_axis, 
         # shard_map with one loop per device would avoid it, but lineax's structure check fails
         # under shard_map for the event root finder, so events would not work.)
         out = _constrain(out, out_sharding)
-    return out
+    return out, diagnostics
 
 
 def simulate_batch(
@@ -214,9 +221,11 @@ def simulate_batch(
     are sharded over the devices along that axis.
 
     The call is compiled once per shape: a second call with new initial states or parameter
-    values (same ``B``) reuses the compiled program. The initial-state checks of ``simulate``
-    are compiled in (``eqx.error_if``): a bad member stops the call; call ``jl.simulate`` on
-    that member alone for the detailed message.
+    values (same ``B``) reuses the compiled program. The checks of ``simulate`` apply to every
+    member: with concrete inputs and plain save times ``ts`` the save times are checked on the
+    host and each member's initial-state diagnostics are returned by the program, so that the
+    message names the first bad member and the program holds no host callback (JAX's
+    persistent cache stores it); under an enclosing ``jit`` they are compiled in.
     """
     q0, qd0 = as_float_state(q0, qd0)
     for name, x in (("q0", q0), ("qd0", qd0)):
@@ -293,16 +302,32 @@ def simulate_batch(
     # the failed members, or not at all with throw=False.
     throw = simulate_kwargs.pop("throw", True)
     concrete = _is_concrete((q0, qd0, ts, batched_args, shared_args))
+    run_kwargs = {**simulate_kwargs, "throw": False}
+    initial_check = None
+    if concrete and _checked_on_host(ts, simulate_kwargs):
+        text = _save_times_message(np.asarray(ts))
+        if text is not None:
+            raise ValueError(text)
+        run_kwargs.update(check_times=False)
+        if run_kwargs.get("check_initial_state", True):
+            tolerance = run_kwargs.get("constraint_tolerance")
+            if tolerance is None:
+                tolerance = checks.default_constraint_tolerance(q0.dtype)
+            initial_check = (np.asarray(ts)[0], float(tolerance))
+            run_kwargs.update(check_initial_state=False)
     with failures.plain_errors() if concrete else contextlib.nullcontext():
-        out = _run_batch(
+        out, diagnostics = _run_batch(
             system, q0, qd0, ts, batched_args, shared_args,
             0 if q0.ndim == 2 else None, 0 if qd0.ndim == 2 else None,
-            {**simulate_kwargs, "throw": False}, out_sharding,
+            run_kwargs, out_sharding, initial_check,
         )
-        if concrete:  # the compiled initial-state checks raise while we wait for the result
+        if concrete:  # compiled initial-state checks raise while we wait for the result
             jax.block_until_ready(out.failure.code)
     if pad:
-        out = jax.tree.map(lambda x: x[:size] if isinstance(x, jax.Array) else x, out)
+        out, diagnostics = jax.tree.map(lambda x: x[:size] if isinstance(x, jax.Array) else x,
+                                        (out, diagnostics))
+    if initial_check is not None:
+        checks.raise_for_initial_states(system, diagnostics, args, initial_check[1])
     if throw and out.failure is not None:
         if not _is_concrete(out.failure):
             out = eqx.tree_at(lambda tr: tr.q, out, failures.error_if_failed(out.failure, out.q))
@@ -313,6 +338,17 @@ def simulate_batch(
             # Several hosts: each process can read only its own rows; it raises for those.
             _raise_for_local_members(out.failure)
     return out
+
+
+def _checked_on_host(ts, simulate_kwargs) -> bool:
+    """Whether the batch's checks can run on the host: plain save times ``ts`` (no ``t0``,
+    ``t1``, ``saveat`` or ``dt0`` of another sign) and one process (every row readable)."""
+    if ts is None or any(simulate_kwargs.get(k) is not None for k in ("t0", "t1", "saveat")):
+        return False
+    dt0 = simulate_kwargs.get("dt0")
+    if dt0 is not None and not (_is_concrete(dt0) and float(dt0) >= 0):
+        return False
+    return jax.process_count() == 1
 
 
 def _raise_for_local_members(failure) -> None:

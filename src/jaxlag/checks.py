@@ -292,6 +292,23 @@ def validate_initial_state(system, q, qd, t, args, tolerance: float | None):
     return q, qd
 
 
+def initial_state_diagnostics(system, q, qd, t, args, tolerance):
+    """``(values, failures)`` of the initial-state check as values (traceable, no callback):
+    for programs that return their checks to the host (:func:`raise_for_initial_states`)."""
+    d, fail = _diagnostics(system, q, qd, t, args, tolerance)
+    return dict(d, q=q, qd=qd), fail
+
+
+def raise_for_initial_states(system, diagnostics, args, tolerance) -> None:
+    """Raise ``ValueError`` on the host for the first failing member of (batched)
+    :func:`initial_state_diagnostics`, with the message of :func:`validate_initial_state`."""
+    d, fail = jax.device_get(diagnostics)
+    static = _Static(tuple(system.unilateral), float(tolerance), tuple(_inexact_names(args)))
+    text = _batched_initial_message(static, (d, fail))
+    if text is not None:
+        raise ValueError(text)
+
+
 # ----------------------------------------------------------------------------- System methods
 def _state_message(what: str, static: _Static, payload) -> str | None:
     """Why ``System.<what>`` is not finite at a state (first failing member of a batch)."""

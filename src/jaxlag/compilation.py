@@ -28,9 +28,9 @@ A second run of the same script then loads its programs instead of compiling the
 callbacks, so jaxlag keeps them out of the programs it runs itself: ``simulate``'s solve and the
 forward sensitivities of ``jax.grad`` check the initial state on the host (before the program),
 diffrax's own checks of times already checked on the host compile without callbacks
-(:func:`diffrax_checks_done_on_host`), and ``jl.fit``'s least-squares program returns its checks
-for the host to raise. (``simulate_batch`` keeps its compiled per-member checks; a ``jit`` of
-your own is cached if it has no callbacks, e.g. ``jl.simulate(..., throw=False,
+(:func:`diffrax_checks_done_on_host`), and ``jl.fit``'s least-squares program and
+``simulate_batch``'s program return their checks for the host to raise. (A ``jit`` of your own
+is cached if it has no callbacks, e.g. ``jl.simulate(..., throw=False,
 check_initial_state=False, check_times=False)``.)
 """
 
