@@ -125,7 +125,10 @@ def _stack(experiments) -> Experiment:
                 f"observations must have shape (T, k) with T = len(ts) = {ts.shape[0]}; got "
                 f"{np.shape(e.observations)}."
             )
-    return jax.tree.map(lambda *xs: jnp.stack([jnp.asarray(x, float) for x in xs]), *experiments)
+    # Stacked on the host (NumPy, JAX's default float type): the fit's bookkeeping compiles no
+    # small device programs; the arrays go to the device as inputs of the compiled programs.
+    dtype = jax.dtypes.canonicalize_dtype(float)
+    return jax.tree.map(lambda *xs: np.stack([np.asarray(x, dtype) for x in xs]), *experiments)
 
 
 class FitResult(eqx.Module):
@@ -276,7 +279,7 @@ def _residuals_and_jacobian(model, free, data, fixed_states):
     host: the program has no host callback, so JAX's persistent cache stores it.
     """
     r, jacobian, flat, checks = _linearize(model, free, data, fixed_states)
-    _raise_for_health(model, checks, model.physical(free["params"]), data)
+    _raise_for_health(model, checks, free["params"], data)
     return r, jacobian, flat
 
 
@@ -295,7 +298,7 @@ def _linearize(model, free, data, fixed_states):
     return r, columns.T, flat, checks
 
 
-def _raise_for_health(model, checks, params, data) -> None:
+def _raise_for_health(model, checks, flat_params, data) -> None:
     """Raise what the checks of :meth:`_Model.observations_of` found (host side): an initial
     state the projection could not bring onto the constraint manifold (``ValueError``, as
     :func:`~jaxlag.consistent_initial_state`), or a failed simulation (``SimulationError``, with
@@ -315,6 +318,7 @@ def _raise_for_health(model, checks, params, data) -> None:
     failed = np.argwhere(np.asarray(failure.code) != failures.NONE)
     if failed.size:
         index = tuple(failed[0])
+        params = model.physical(flat_params)  # only now: eager operations compile
         args = jax.device_get({**data["fixed"], **params})
         text = failures.describe(failures.member(failure, index), model.system, args)
         raise failures.SimulationError(
@@ -407,7 +411,7 @@ def _segment_grid(ts, segments):
         )
     m = (t - 1) // segments
     index = np.arange(segments)[:, None] * m + np.arange(m + 1)[None, :]
-    return ts[:, index], index[:, 0]
+    return np.asarray(ts)[:, index], index[:, 0]
 
 
 def fit(
@@ -469,7 +473,7 @@ def fit(
     simulate_kwargs.setdefault("max_steps", 16384)
     fixed = {k: jnp.asarray(v, float) if isinstance(v, (int, float)) else v
              for k, v in (args or {}).items()}
-    params = {k: jnp.asarray(v, float) for k, v in params.items()}
+    params = {k: np.asarray(v, jax.dtypes.canonicalize_dtype(float)) for k, v in params.items()}
 
     # Shapes of the observation function against the data.
     q_probe = batch.q0[0]
@@ -497,7 +501,7 @@ def fit(
                                            {**fixed, **params}, starts, kwargs_key)
         else:
             segment_states = (batch.q0[:, None], batch.qd0[:, None])
-    segment_states = tuple(jnp.asarray(s, float) for s in segment_states)
+    segment_states = tuple(np.asarray(s, batch.q0.dtype) for s in segment_states)
     expected = (num_experiments, segments, batch.q0.shape[-1])
     if segment_states[0].shape != expected or segment_states[1].shape != expected:
         raise ValueError(f"segment_states must be (q, qd) of shape {expected} each.")
@@ -510,7 +514,7 @@ def fit(
         "continuity_weight": float(continuity_weight),
     }
     free_states, fixed_states = model.split(segment_states)
-    free = {"params": model.unconstrained(params), **free_states}
+    free = {"params": _unconstrained(model, params), **free_states}
 
     bar = _progress_bar(max_steps, progress)
     history, converged, steps = [], False, 0
@@ -553,28 +557,45 @@ def fit(
         raise FloatingPointError("The fit diverged (non-finite loss): start closer, bound the "
                                  "parameters with `transforms`, or lower the learning rate.")
 
-    fitted = model.physical(free["params"])
-    x = jnp.concatenate([spec.ravel(fitted), ravel_pytree(
-        {k: v for k, v in free.items() if k != "params"})[0]])
-    flat = np.asarray(ravel_pytree(free)[0])
+    flat = np.concatenate([np.ravel(np.asarray(leaf)) for leaf in jax.tree.leaves(free)])
     if isinstance(method, str) and np.array_equal(flat, np.asarray(linearization[2])):
         r, jac_free, _ = linearization  # the last step was taken at (and accepted) this point
     else:
         r, jac_free, _ = _residuals_and_jacobian(model, free, data, fixed_states)
-    jac = jac_free @ _free_variables_jacobian(model, x, free)
     observed = int(np.sum(np.isfinite(np.asarray(batch.observations))))
-    if noise_std is None:
-        sigma2 = jnp.sum(r**2) / max(observed - x.shape[0], 1)
+    noise = None if noise_std is None else np.asarray(float(noise_std), batch.q0.dtype)
+    fitted, standard_errors, covariance, residual_std, initial, states = _summary(
+        model, free, fixed_states, r, jac_free, np.asarray(max(observed - flat.size, 1)), noise)
+    return FitResult(fitted, standard_errors, covariance, residual_std,
+                     np.asarray(history), initial, steps, converged, states)
+
+
+@compilation.filter_jit
+def _unconstrained(model, params):
+    """The free parameters (raveled, unconstrained) of the physical ``params``."""
+    return model.unconstrained(params)
+
+
+@compilation.filter_jit
+def _summary(model, free, fixed_states, r, jac_free, dof, noise):
+    """At the optimum, in one program: the physical parameters, their standard errors and
+    covariance ``σ² (JᵀJ)⁺`` (``J`` in physical parameters, ``σ² = Σr²/dof`` unless the noise
+    σ is known), the residual standard deviation and the segment states."""
+    fitted = model.physical(free["params"])
+    x = jnp.concatenate([model.spec.ravel(fitted), ravel_pytree(
+        {k: v for k, v in free.items() if k != "params"})[0]])
+    jac = jac_free @ _free_variables_jacobian(model, x, free)
+    if noise is None:
+        sigma2 = jnp.sum(r**2) / dof
         residual_std = jnp.sqrt(sigma2)
     else:
-        sigma2, residual_std = jnp.asarray(1.0), jnp.asarray(float(noise_std))
+        sigma2, residual_std = jnp.ones((), r.dtype), noise
     covariance = sigma2 * jnp.linalg.pinv(jac.T @ jac)
-    p = spec.ravel(fitted).shape[0]
-    standard_errors = spec.unravel(jnp.sqrt(jnp.diag(covariance))[:p])
+    p = model.spec.ravel(fitted).shape[0]
+    standard_errors = model.spec.unravel(jnp.sqrt(jnp.diag(covariance))[:p])
     states = model.states(free, fixed_states)
-    return FitResult(fitted, standard_errors, covariance[:p, :p], residual_std,
-                     np.asarray(history), (states[0][:, 0], states[1][:, 0]), steps, converged,
-                     states)
+    initial = (states[0][:, 0], states[1][:, 0])
+    return fitted, standard_errors, covariance[:p, :p], residual_std, initial, states
 
 
 def _tick(bar, loss):
