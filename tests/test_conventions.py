@@ -73,3 +73,33 @@ def test_module_lagrangian_is_differentiated_through():
     # q(t) = cos(√k t): ∂q(1)/∂k = −sin(√k) / (2√k) at k = 4.
     # Tolerance: default rtol 1e-10 of the adaptive solve, propagated through the adjoint.
     np.testing.assert_allclose(grads.stiffness, -np.sin(2.0) / 4.0, rtol=1e-7)
+
+
+def test_host_values_become_jax_arrays_without_compiling():
+    """as_jax_array / as_array_leaves give what jnp.asarray gives (value, dtype, weak type) for
+    host values, and compile no device program for them (jnp.asarray compiles a copy per shape
+    of a NumPy array and a conversion per dtype change)."""
+    from jaxlag.conventions import as_array_leaves, as_jax_array
+
+    compiles = []
+    listener = (lambda event, duration, **kw: compiles.append(event)
+                if event == "/jax/core/compile/backend_compile_duration" else None)
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        shape = (3, 7)  # a shape no other test converts
+        cases = [(np.linspace(0.0, 1.0, 21).reshape(shape), None),
+                 (np.arange(21).reshape(shape), None),
+                 (np.arange(21, dtype=np.float32).reshape(shape), jnp.float64),
+                 ([1.5, 2.5, 3.5, 4.5, 5.5, 6.5, 7.5], None), (2.75, jnp.float64)]
+        for value, dtype in cases:
+            got = as_jax_array(value, dtype)
+            assert isinstance(got, jax.Array)
+            assert got.dtype == np.asarray(value, dtype).dtype
+            assert not jax.typeof(got).weak_type
+            np.testing.assert_array_equal(got, np.asarray(value, dtype))
+        leaves = as_array_leaves({"g": 9.81, "k": np.float32(2.0), "n": 3})
+        assert leaves["g"].dtype == jnp.float64 and leaves["k"].dtype == jnp.float32
+        assert leaves["n"] == 3 and isinstance(leaves["n"], int)
+        assert not compiles, compiles
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)

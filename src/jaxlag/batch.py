@@ -50,7 +50,7 @@ from . import checks
 from . import compilation
 from . import failures
 from .checks import _is_concrete
-from .conventions import as_array_leaves, as_float_state
+from .conventions import as_array_leaves, as_float_state, as_jax_array
 from .ensemble_entry import ensemble_by_default as _ensemble_by_default
 from .ensemble_entry import run_ensemble
 from .simulate import _save_times_message, simulate
@@ -267,7 +267,7 @@ def simulate_batch(
     if method == "auto":
         method = "ensemble" if _ensemble_by_default(system, ts, simulate_kwargs) else "vmap"
     if ts is not None:
-        ts = jnp.asarray(ts, dtype=q0.dtype)
+        ts = as_jax_array(ts, q0.dtype)
         if ts.ndim == 2 and method == "vmap":
             raise ValueError(f"Per-member save times ts of shape {ts.shape} need method='ensemble'.")
 

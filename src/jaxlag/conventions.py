@@ -128,12 +128,31 @@ def wrap_event_function(fn: Callable, role: str = "event condition") -> UserFunc
     return _wrap(fn, role, 2, _EXTRA_NAMES + ("multipliers",))
 
 
+_HOST_VALUES = (np.ndarray, np.generic, float, int, complex, bool, list, tuple)
+
+
+def as_jax_array(x, dtype=None):
+    """``jnp.asarray(x, dtype)``, without compiling anything for host values.
+
+    JAX compiles a small program for ``jnp.asarray`` of a NumPy array (a copy, once per shape)
+    and for a change of dtype (a conversion, once per dtype): tens of milliseconds each in a
+    fresh process. Host values (NumPy arrays and scalars, Python numbers and lists) are
+    converted on the host and transferred instead; the dtype is canonicalized as JAX does
+    (``float64`` becomes ``float32`` without ``jax_enable_x64``). JAX arrays and tracers go
+    through ``jnp.asarray``.
+    """
+    if isinstance(x, _HOST_VALUES):
+        host = np.asarray(x) if dtype is None else np.asarray(x, dtype)
+        return jax.device_put(host.astype(jax.dtypes.canonicalize_dtype(host.dtype), copy=False))
+    return jnp.asarray(x, dtype=dtype)
+
+
 def as_float_state(q0, qd0):
     """Initial coordinates and velocities as floating-point JAX arrays (ints are promoted)."""
-    q0 = jnp.asarray(q0)
+    q0 = as_jax_array(q0)
     if not jnp.issubdtype(q0.dtype, jnp.floating):
         q0 = q0.astype(jnp.result_type(float))
-    qd0 = jnp.asarray(qd0)
+    qd0 = as_jax_array(qd0)
     if not jnp.issubdtype(qd0.dtype, jnp.floating):
         qd0 = qd0.astype(q0.dtype)
     return q0, qd0
@@ -152,7 +171,8 @@ def as_array_leaves(tree):
 
     def convert(x):
         if isinstance(x, (float, complex, np.ndarray, np.floating)):
-            return jnp.asarray(x, dtype=jax.dtypes.canonicalize_dtype(np.result_type(x)))
+            # A transfer of the converted host value: no device program is compiled for it.
+            return jax.device_put(np.asarray(x, jax.dtypes.canonicalize_dtype(np.result_type(x))))
         if (isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.inexact)
                 and jax.typeof(x).weak_type):
             return jax.lax.convert_element_type(x, x.dtype)

@@ -22,7 +22,7 @@ from .checks import (
 )
 from .conventions import as_array_leaves as _as_array_leaves
 from .constant_mass import with_constant_mass
-from .conventions import as_float_state
+from .conventions import as_float_state, as_jax_array
 from .events import Event, default_root_finder, solve_segments
 from .kkt import accelerations_and_multipliers
 from .mechanics import unconstrained_accelerations
@@ -275,7 +275,7 @@ def simulate(
     vouched = (not check_times and ts is not None and not user_saveat and t0 is None
                and t1 is None and (dt0 is None or (_is_concrete(dt0) and float(dt0) >= 0)))
     if ts is not None:
-        ts = jnp.asarray(ts, dtype=q0.dtype)
+        ts = as_jax_array(ts, q0.dtype)
         if ts.ndim != 1 or ts.shape[0] < 1:
             raise ValueError(f"ts must be a non-empty 1-D array of save times; got shape {ts.shape}.")
         # Concrete save times are checked and sliced on the host: no eager device operations.

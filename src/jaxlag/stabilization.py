@@ -30,7 +30,7 @@ import numpy as np
 
 from . import compilation
 from . import constraints as _constraints
-from .conventions import as_array_leaves
+from .conventions import as_array_leaves, as_jax_array
 from .kkt import deactivate
 from .linalg import solve_psd_least_squares, solve_spd, spd_solver
 from .mechanics import _as_time, mass_matrix, mass_solver
@@ -223,8 +223,8 @@ def consistent_initial_state(system, q0, qd0, t0=0.0, args=None, *, fixed_q=(), 
 
     Returns ``(q0, qd0)`` with ``f(q0) = 0``, ``J q̇0 + ∂f/∂t = 0`` and ``A q̇0 + b = 0``.
     """
-    q0 = jnp.asarray(q0, dtype=jnp.result_type(float))
-    qd0 = jnp.asarray(qd0, dtype=q0.dtype)
+    q0 = as_jax_array(q0, jnp.result_type(float))
+    qd0 = as_jax_array(qd0, q0.dtype)
     if tolerance is None:
         tolerance = default_projection_tolerance(q0.dtype)
     system.check(q0, qd0, t0, args)
