@@ -305,3 +305,31 @@ def test_solves_are_unchanged_by_ulp_loops():
     np.testing.assert_array_equal(got, want[:, 0, :])
     assert hlo.count("next_after") < 100
     assert jax.jit(solve).lower(y0[None, :], 0.7).as_text().count("next_after") >= 100
+
+
+def test_simulations_traced_in_parallel_threads():
+    """jaxlag's tracing windows (host-checked diffrax checks, ULP loops) from several threads at
+    once: every result equals the one traced alone, and equinox is restored afterwards."""
+    import threading
+
+    import equinox.internal as eqxi
+
+    original = eqxi.prevbefore
+    system = jl.System(lambda q, qd, args: 0.5 * (qd @ qd) - args["g"] * q[1],
+                       holonomic=lambda q, args: jnp.array([q @ q - 1.0]))
+    q0 = jnp.array([jnp.sin(0.4), -jnp.cos(0.4)])
+    sizes = (4, 5, 6, 7)  # one new trace per thread
+
+    def run(size):
+        return jl.simulate(system, q0, jnp.zeros(2), jnp.linspace(0.0, 0.3, size),
+                           args={"g": 9.81}).q[-1]
+
+    results = {}
+    threads = [threading.Thread(target=lambda s=s: results.__setitem__(s, run(s))) for s in sizes]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert eqxi.prevbefore is original
+    for size in sizes:
+        np.testing.assert_allclose(results[size], run(size), rtol=0, atol=1e-13)

@@ -82,8 +82,11 @@ def test_host_values_become_jax_arrays_without_compiling():
     from jaxlag.conventions import as_array_leaves, as_jax_array
 
     compiles = []
-    listener = (lambda event, duration, **kw: compiles.append(event)
-                if event == "/jax/core/compile/backend_compile_duration" else None)
+
+    def listener(event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(event)
+
     jax.monitoring.register_event_duration_secs_listener(listener)
     try:
         shape = (3, 7)  # a shape no other test converts

@@ -321,9 +321,12 @@ def ulp_chains_as_loops():
 
             eqxi.prevbefore = prevbefore
         _ulp_window["depth"] += 1
-        try:
-            yield
-        finally:
+    # Not held while tracing: windows of other threads overlap (the last one out restores
+    # equinox; the replacement is exact, so code outside a window may meet it meanwhile).
+    try:
+        yield
+    finally:
+        with _ULP_LOCK:
             _ulp_window["depth"] -= 1
             if _ulp_window["depth"] == 0:
                 eqxi.prevbefore = _ulp_window["original"]
