@@ -209,3 +209,19 @@ def test_failures_during_a_fit_are_raised_from_the_host():
     with pytest.raises(ValueError, match="jl.fit, experiment 0: consistent_initial_state"):
         jl.fit(bead, START, jl.Experiment(TS[:5], observed[:5], jnp.array([0.5, -0.5]),
                                           jnp.zeros(2)), observe=lambda q, qd: q)
+
+
+def test_one_experiment_path_equals_the_batched_one():
+    """One experiment with one segment skips the vmaps over experiments and segments (no
+    batching transform of the solver): its loss and gradient equal half those of the same
+    experiment given twice (the batched path), to rounding."""
+    experiment = jl.Experiment(TS, observe_bob(TRUE), Q0, QD0)
+
+    def loss(params, experiments):
+        return jl.least_squares_loss(PENDULUM, params, experiments, observe=bob)
+
+    one, grad_one = jax.value_and_grad(loss)(START, experiment)
+    two, grad_two = jax.value_and_grad(loss)(START, [experiment, experiment])
+    np.testing.assert_allclose(two, 2 * one, rtol=1e-13)
+    for name in START:
+        np.testing.assert_allclose(grad_two[name], 2 * grad_one[name], rtol=1e-11)

@@ -236,8 +236,14 @@ class _Model(eqx.Module):
             return y, traj.q[-1], traj.qd[-1], (traj.failure, residual)
 
         # states: (E, S, n) each; ts_seg: (E, S, m + 1)
-        y, q_end, qd_end, checks = jax.vmap(jax.vmap(one_segment))(data["ts_seg"], states[0],
-                                                                   states[1])
+        if data["ts_seg"].shape[:2] == (1, 1):
+            # One experiment, one segment: no batching transform of the solver (its fixpoints
+            # over diffrax's loops are most of the tracing time of the least-squares program).
+            out = one_segment(data["ts_seg"][0, 0], states[0][0, 0], states[1][0, 0])
+            y, q_end, qd_end, checks = jax.tree.map(lambda x: jnp.asarray(x)[None, None], out)
+        else:
+            y, q_end, qd_end, checks = jax.vmap(jax.vmap(one_segment))(
+                data["ts_seg"], states[0], states[1])
         return (y, q_end, qd_end, checks) if health else (y, q_end, qd_end)
 
     def residuals(self, free, data, fixed_states, adjoint, health=False):
