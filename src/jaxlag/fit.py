@@ -299,6 +299,9 @@ def _linearize(model, free, data, fixed_states):
     def push(direction):
         return jax.jvp(residuals, (flat,), (direction,), has_aux=True)
 
+    if flat.shape[0] == 1:  # one free variable: a plain jvp, no size-1 batch of the solver
+        r, column, checks = push(jnp.ones_like(flat))
+        return r, column[:, None], flat, checks
     r, columns, checks = jax.vmap(push, out_axes=(None, 0, None))(
         jnp.eye(flat.shape[0], dtype=flat.dtype))
     return r, columns.T, flat, checks

@@ -150,6 +150,12 @@ def _push(run, static, adjoint, primals, tangents, axes, structure):
         return jax.jvp(lambda v: _split_inexact(run(eqx.combine(v, static), adjoint)), (primals,),
                        (jax.tree.unflatten(structure, tangent_leaves),), has_aux=True)
 
+    if all(np.shape(t)[0] == 1 for t, axis in zip(tangents, axes) if axis is not None):
+        # One direction: a plain jvp (a size-1 vmap would batch the whole solver loop, which
+        # costs tracing time and buys nothing).
+        single = [t[0] if axis is not None else t for t, axis in zip(tangents, axes)]
+        primal, tangent, rest = one(single)
+        return primal, jax.tree.map(lambda x: x[None], tangent), rest
     return jax.vmap(one, in_axes=(list(axes),), out_axes=(None, 0, None))(tangents)
 
 
