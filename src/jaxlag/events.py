@@ -113,10 +113,7 @@ class _Segment(eqx.Module):
     locks: Any  # (num_events,) sign each user condition starts from at t_start (0: its own value)
 
     def release(self, t, y, args, **kwargs):
-        q, qd = y
-        _, lam, _ = accelerations_and_multipliers(self.system, q, qd, t, args, active=self.active)
-        value = _masked_min(lam, self.active & self.unilateral)
-        return jnp.where(jnp.isfinite(value), value, 1.0)
+        return _release_value(self.system, y, t, args, self.active, self.unilateral)
 
     def contact(self, t, y, args, **kwargs):
         q, _ = y
@@ -145,6 +142,19 @@ class _Segment(eqx.Module):
             conds.append(lambda t, y, args, _j=j, **kwargs: self.user(_j, t, y, args))
             directions.append(event.direction)
         return diffrax.Event(conds, root_finder=root_finder, direction=directions)
+
+
+@compilation.filter_jit
+def _release_value(system, y, t, args, active, unilateral):
+    """The release condition ``min λ`` over the active unilateral constraints (1 if none).
+
+    Jitted on its own: diffrax traces event conditions a dozen times per solve (its checks, the
+    loop body's static analysis, the root finder), and each trace is a full KKT solve; JAX's
+    tracing cache serves the repeats (the sphere release simulation traces 1.3 → 1.1 s)."""
+    q, qd = y
+    _, lam, _ = accelerations_and_multipliers(system, q, qd, t, args, active=active)
+    value = _masked_min(lam, active & unilateral)
+    return jnp.where(jnp.isfinite(value), value, 1.0)
 
 
 def _first(mask):
