@@ -277,3 +277,34 @@ def test_decision_and_equations_over_random_lagrangians(n, seed, state_dependent
     slow_out = accelerations_and_multipliers(system, q, qd, T0, None)
     for x, y in zip(fast_out, slow_out):
         np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
+
+
+def test_concrete_mass_is_one_program_and_survives_traced_closures():
+    """The constant M is evaluated by one compiled program (op by op, each operation of the
+    Hessian would compile a program of its own); a Lagrangian that closes over a traced value
+    (on which M does not depend) still gets a concrete M, by the op-by-op fallback."""
+    from jaxlag.constant_mass import _concrete_mass
+
+    q, qd = chain_state(2)
+    compiles = []
+
+    def listener(event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(event)
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        system = jl.System(lambda q, qd: 0.5 * 3.0 * jnp.sum(qd**2) - G * jnp.sum(q[1::2]), chain)
+        mass = jax.jit(lambda q: jnp.asarray(_concrete_mass(system, q, qd, T0, None)))(q)
+        assert len(compiles) <= 2, compiles  # M's program, and the caller's own jit
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    np.testing.assert_array_equal(mass, 3.0 * np.eye(4))
+
+    def traced(g):
+        closing = jl.System(lambda q, qd: 0.5 * jnp.sum(qd**2) - g * jnp.sum(q[1::2]), chain)
+        found = _concrete_mass(closing, q, qd, T0, None)
+        assert isinstance(found, np.ndarray)
+        return jnp.asarray(found) * g
+
+    np.testing.assert_array_equal(jax.jit(traced)(2.0), 2.0 * np.eye(4))

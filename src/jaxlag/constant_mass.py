@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import compilation
 from .checks import MASS_RCOND
 from .dependence import may_depend
 from .linalg import solve_spd
@@ -57,6 +58,9 @@ def _mass(q, qd, t, args, system):
     return mass_along(system, q, qd, t, args, jnp.eye(q.shape[0], dtype=qd.dtype))
 
 
+_mass_program = compilation.filter_jit(_mass)
+
+
 def mass_dependence(system, q, qd, t, args):
     """``(on_state, on_parameters)``: whether ``M`` may depend on ``(q, q̇, t)``, and on traced
     parameters (the arrays in ``args`` or in ``system``, or traced values its functions close
@@ -79,6 +83,16 @@ def _concrete_mass(system, q, qd, t, args):
 
     try:
         inputs = jax.tree.map(zeros, (q, qd, t, args, system))
+    except Exception:  # noqa: BLE001 - an optimisation: fall back to inverting M at run time
+        return None
+    try:
+        # One program, traced and compiled on the side (not staged into the program being
+        # traced) and run on the zeros: evaluated op by op, every operation of L's Hessian would
+        # compile a small program of its own (~20 for a pendulum, 0.4 s in a fresh process).
+        return np.asarray(_mass_program.lower(*inputs).compile()(*inputs))
+    except Exception:  # noqa: BLE001 - e.g. L closes over a traced value: op by op instead
+        pass
+    try:
         with jax.ensure_compile_time_eval():
             return np.asarray(_mass(*inputs))
     except Exception:  # noqa: BLE001 - an optimisation: fall back to inverting M at run time
