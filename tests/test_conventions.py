@@ -81,14 +81,9 @@ def test_host_values_become_jax_arrays_without_compiling():
     of a NumPy array and a conversion per dtype change)."""
     from jaxlag.conventions import as_array_leaves, as_jax_array
 
-    compiles = []
+    from test_batch import CompileCounter
 
-    def listener(event, duration, **kwargs):
-        if event == "/jax/core/compile/backend_compile_duration":
-            compiles.append(event)
-
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
+    with CompileCounter() as compiles:
         shape = (3, 7)  # a shape no other test converts
         cases = [(np.linspace(0.0, 1.0, 21).reshape(shape), None),
                  (np.arange(21).reshape(shape), None),
@@ -103,6 +98,4 @@ def test_host_values_become_jax_arrays_without_compiling():
         leaves = as_array_leaves({"g": 9.81, "k": np.float32(2.0), "n": 3})
         assert leaves["g"].dtype == jnp.float64 and leaves["k"].dtype == jnp.float32
         assert leaves["n"] == 3 and isinstance(leaves["n"], int)
-        assert not compiles, compiles
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
+        assert compiles.count == 0
