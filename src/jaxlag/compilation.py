@@ -304,11 +304,9 @@ def ulp_chains_as_loops():
     import equinox.internal as eqxi
 
     with _ULP_LOCK:
-        if _ulp_window["depth"] == 0:
-            original = getattr(eqxi, "prevbefore", None)
-            if original is None:
-                yield
-                return
+        original = _ulp_window["original"] if _ulp_window["depth"] else getattr(
+            eqxi, "prevbefore", None)
+        if original is not None and _ulp_window["depth"] == 0:
             _ulp_window["original"] = original
             chains = _ulp_window["chains"]
 
@@ -320,7 +318,11 @@ def ulp_chains_as_loops():
                 return result
 
             eqxi.prevbefore = prevbefore
-        _ulp_window["depth"] += 1
+        if original is not None:
+            _ulp_window["depth"] += 1
+    if original is None:  # equinox reorganized: nothing to replace
+        yield
+        return
     # Not held while tracing: windows of other threads overlap (the last one out restores
     # equinox; the replacement is exact, so code outside a window may meet it meanwhile).
     try:

@@ -171,8 +171,7 @@ def as_array_leaves(tree):
 
     def convert(x):
         if isinstance(x, (float, complex, np.ndarray, np.floating)):
-            # A transfer of the converted host value: no device program is compiled for it.
-            return jax.device_put(np.asarray(x, jax.dtypes.canonicalize_dtype(np.result_type(x))))
+            return as_jax_array(x, np.result_type(x))  # converted on the host, no compilation
         if (isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.inexact)
                 and jax.typeof(x).weak_type):
             return jax.lax.convert_element_type(x, x.dtype)
