@@ -480,9 +480,10 @@ def fit(
     simulate_kwargs.setdefault("stepsize_controller",
                                diffrax.PIDController(rtol=1e-10, atol=1e-10))
     simulate_kwargs.setdefault("max_steps", 16384)
-    fixed = {k: jnp.asarray(v, float) if isinstance(v, (int, float)) else v
+    real = jax.dtypes.canonicalize_dtype(float)  # on the host: no eager device conversions
+    fixed = {k: np.asarray(v, real) if isinstance(v, (int, float)) else v
              for k, v in (args or {}).items()}
-    params = {k: np.asarray(v, jax.dtypes.canonicalize_dtype(float)) for k, v in params.items()}
+    params = {k: np.asarray(v, real) for k, v in params.items()}
 
     # Shapes of the observation function against the data.
     q_probe = batch.q0[0]
