@@ -178,7 +178,8 @@ def test_persistent_cache_in_the_user_cache_directory(tmp_path):
     # the forward sensitivities of jax.grad, a user's jit of simulate without checks, and
     # simulate_batch (file names start with the program's name).
     stored = [entry.name for entry in os.scandir(directory)]
-    for program in ("jit__solve-", "jit__push-", "jit_user_program-", "jit__run_batch-"):
+    for program in ("jit__solve-", "jit__solve_with_tangents-", "jit_user_program-",
+                    "jit__run_batch-"):
         assert any(name.startswith(program) for name in stored), (program, stored)
     assert run()[1] > hits  # the second process reads what the first wrote
     assert run(JAXLAG_COMPILATION_CACHE="0")[0] == "None"

@@ -101,6 +101,21 @@ def trace_outputs(run: Callable[[Any, Any], Any], inputs: Any, adjoint) -> tuple
     return any(isinstance(c, jax.core.Tracer) for c in closed.consts), shapes
 
 
+def captures_traced_values(probe: Callable[[Any], Any], inputs: Any) -> bool:
+    """Whether ``probe(inputs)`` captures traced values other than its inputs: the test of
+    :func:`trace_outputs` on a cheaper function (e.g. one solver step instead of the loop),
+    which must call every user function the run calls. Anything that prevents the analysis
+    counts as "yes"."""
+    dynamic, static = eqx.partition(inputs, eqx.is_array)
+    try:
+        spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)),
+                            dynamic)
+        closed = jax.make_jaxpr(lambda d: probe(eqx.combine(d, static)))(spec)
+    except Exception:  # noqa: BLE001 - conservative: the general path is always correct
+        return True
+    return any(isinstance(c, jax.core.Tracer) for c in closed.consts)
+
+
 def _unit_tangents(shapes, sizes, k):
     """The k unit directions, split by input: ``(tangents, axes)`` with one host array of shape
     ``(k, *shape)`` per differentiated input (axis 0) and zeros of the input's shape for the
@@ -159,6 +174,14 @@ def _push(run, static, adjoint, primals, tangents, axes, structure):
     return jax.vmap(one, in_axes=(list(axes),), out_axes=(None, 0, None))(tangents)
 
 
+def _pushes_itself(run, inputs, sizes) -> bool:
+    """Whether ``run`` computes its own forward sensitivities for these perturbed inputs
+    (``run.push_along``, e.g. ``simulate``'s one-loop tangent solve), which ``_push`` would
+    otherwise get by ``jax.vmap`` of ``jax.jvp`` of the whole run."""
+    decides = getattr(run, "solves_with_tangents", None)
+    return decides is not None and decides(inputs, [size > 0 for size in sizes])
+
+
 def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
                                     choice: ForwardSensitivities, output_shapes: Any = None,
                                     finish: Callable[[Any], Any] | None = None,
@@ -211,6 +234,21 @@ def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
         sizes = [math.prod(shape) if leaf.perturbed else 0
                  for leaf, (shape, _) in zip(leaves, shapes)]
         k = sum(sizes)
+        if 0 < k <= choice.max_tangents and _pushes_itself(run, inputs, sizes):
+            # One solver loop for the state and its k tangents (jaxlag.tangent_solve), not the
+            # jvp and vmap of the whole loop. Its shapes come from a trace that the call reuses.
+            tangents, axes = _unit_tangents(shapes, sizes, k)
+
+            def pushed(p, t):
+                return run.push_along(p, static, t, tuple(axes), structure)
+
+            out_shape = jax.eval_shape(pushed, primals, tangents)[0]
+            out_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(out_shape))
+            if k * out_bytes <= choice.max_bytes:
+                decided.update(sizes=sizes, outputs=jax.tree.structure(out_shape))
+                inexact, sensitivities, rest = pushed(primals, tangents)
+                inexact, rest = finished(inexact, rest)
+                return eqx.combine(inexact, rest), (sensitivities, None)
         if output_shapes is None:
             out_shape, _ = jax.eval_shape(lambda v: evaluate(v, choice.inner), primals)
         else:

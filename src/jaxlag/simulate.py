@@ -14,6 +14,7 @@ import numpy as np
 
 from . import compilation
 from . import failures
+from . import tangent_solve
 from .checks import (
     _is_concrete,
     default_constraint_tolerance,
@@ -29,9 +30,10 @@ from .mechanics import unconstrained_accelerations
 from .sensitivities import (
     ForwardSensitivities,
     call_with_forward_sensitivities,
+    captures_traced_values,
     trace_outputs,
 )
-from .stabilization import Baumgarte, Projection, wrap_for_projection
+from .stabilization import Baumgarte, Projection, stages_for_forward_mode, wrap_for_projection
 from .system import System
 from .trajectory import Trajectory
 
@@ -52,6 +54,7 @@ def _save_times_message(ts) -> str | None:
 
 
 _SAVE_TIMES = failures.Report(_save_times_message, ValueError)
+_SAVE_Y = diffrax.SubSaveAt(t1=True).fn  # diffrax's default: save the state as it is
 
 
 class EquationsOfMotion(eqx.Module):
@@ -109,32 +112,32 @@ def _as_time(t, dtype):
     return np.asarray(t, dtype=dtype)
 
 
-@compilation.filter_jit
-def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat, max_steps,
-           adjoint, event, progress_meter, baumgarte, projection, check, tolerance,
-           times_checked=False):
-    system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation
-    if check:
-        q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
+def _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection, adjoint):
+    """What the solver loop integrates: ``(system, solver, term)`` with a state-independent
+    ``M`` found and inverted once (:mod:`jaxlag.constant_mass`) and the solver wrapped for the
+    projection."""
     # A state-independent M (Cartesian particles) is inverted once here, not at every step.
     fast = with_constant_mass(system, q0, qd0, t0, args)
     if projection is not None:
         solver = wrap_for_projection(solver, fast, projection, adjoint)
-    # Failures are recorded (jaxlag.failures), not thrown by diffrax: simulate raises with the
-    # numbers and a diagnosis instead of "max_steps reached" after 65,536 rejected NaN steps.
+    return fast, solver, diffrax.ODETerm(EquationsOfMotion(fast, baumgarte))
+
+
+def _integrate(term, solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, event,
+               max_steps, progress_meter, with_tangents=False):
+    """``diffrax.diffeqsolve`` with jaxlag's compile-time measures (see :mod:`jaxlag.compilation`)
+    and without diffrax's exceptions: failures are recorded (:mod:`jaxlag.failures`).
+    ``with_tangents``: ``solver`` is a :class:`~jaxlag.tangent_solve.TangentSolver` and ``y0``
+    carries tangents, which the (guarded) ``controller`` is kept from seeing."""
     # Times checked on the host: diffrax's compiled checks of them are left out (the window
     # closes in the guard's init, before the solver loop is traced).
-    controller = failures.guard(stepsize_controller, times_checked)
-    with (compilation.diffrax_checks_done_on_host(failures.skips_diffrax_checks(controller)),
+    skip_checks = failures.skips_diffrax_checks(controller)
+    if with_tangents:
+        controller = tangent_solve.primal_step_sizes(controller)
+    with (compilation.diffrax_checks_done_on_host(skip_checks),
           compilation.ulp_chains_as_loops()):
-        solution = diffrax.diffeqsolve(
-            diffrax.ODETerm(EquationsOfMotion(fast, baumgarte)),
-            solver,
-            t0,
-            t1,
-            dt0,
-            (q0, qd0),
-            args,
+        return diffrax.diffeqsolve(
+            term, solver, t0, t1, dt0, y0, args,
             saveat=failures.saving_guard_state(saveat),
             stepsize_controller=controller,
             adjoint=adjoint,
@@ -143,7 +146,11 @@ def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, save
             throw=False,
             progress_meter=progress_meter,
         )
-    q, qd = solution.ys
+
+
+def _finish(system, fast, projection, solution, ys, t0, t1, q0, qd0, args, max_steps):
+    """The :class:`Trajectory` of a solve whose saved states are ``ys``."""
+    q, qd = ys
     if projection is not None:
         # Saved values between steps come from the solver's interpolant: project them too.
         q, qd = jax.vmap(lambda t, x, v: projection(fast, x, v, t, args))(solution.ts, q, qd)
@@ -155,6 +162,98 @@ def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, save
         system, solution.ts, q, qd, args, stats=solution.stats, result=solution.result,
         failure=failure,
     )
+
+
+@compilation.filter_jit
+def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat, max_steps,
+           adjoint, event, progress_meter, baumgarte, projection, check, tolerance,
+           times_checked=False):
+    system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation
+    if check:
+        q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
+    fast, solver, term = _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection,
+                                  adjoint)
+    # Failures are recorded (jaxlag.failures), not thrown by diffrax: simulate raises with the
+    # numbers and a diagnosis instead of "max_steps reached" after 65,536 rejected NaN steps.
+    controller = failures.guard(stepsize_controller, times_checked)
+    solution = _integrate(term, solver, t0, t1, dt0, (q0, qd0), args, saveat, controller,
+                          adjoint, event, max_steps, progress_meter)
+    return _finish(system, fast, projection, solution, solution.ys, t0, t1, q0, qd0, args,
+                   max_steps)
+
+
+def _one_step(inputs):
+    """One step of the solve of ``inputs`` as :func:`_solve` sets it up (controller start,
+    solver start, step, step-size decision, dense output, projection at a save time): every
+    user function the solver loop calls, for :func:`captures_traced_values`."""
+    (system, q0, qd0, t0, t1, _, dt0, args, _, solver, stepsize_controller, baumgarte,
+     projection, _, _) = inputs
+    fast, solver, term = _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection,
+                                  diffrax.ForwardMode())
+    controller = failures.guard(stepsize_controller)
+    y0 = (q0, qd0)
+    order = solver.error_order(term)
+    t1, controller_state = controller.init(term, t0, t1, y0, dt0, args, solver.func, order)
+    state = solver.init(term, t0, t1, y0, args)
+    y1, error, info, _, _ = solver.step(term, t0, t1, y0, args, state, False)
+    decision = controller.adapt_step_size(t0, t1, y0, y1, args, error, order, controller_state)
+    saved = solver.interpolation_cls(t0=t0, t1=t1, **info).evaluate(t1)
+    if projection is not None:
+        saved = projection(fast, saved[0], saved[1], t1, args)
+    return decision, saved
+
+
+@compilation.filter_jit
+def _solve_with_tangents(run, static, primals, tangents, axes, structure):
+    """The solve of :func:`_solve` (``run``'s, not segmented) and its derivatives along k
+    directions in one solver loop (:mod:`jaxlag.tangent_solve`): ``(outputs, tangents,
+    rest)`` as ``jax.vmap(jax.jvp(...))`` of ``run`` gives them (:mod:`jaxlag.sensitivities`),
+    the outputs' inexact leaves, their k tangents (leading axis) and the other leaves.
+
+    ``primals``: the inexact leaves of the inputs (structure ``structure``, the rest in
+    ``static``); ``tangents``: one per leaf, k leading where ``axes`` says 0, else not batched.
+    Only the inputs that the solver steps see may be perturbed (not times, not the controller):
+    :meth:`_Run.solves_with_tangents` decides."""
+    leaves = jax.tree.leaves(primals)
+    axes = list(axes)
+
+    def inputs_of(values):
+        return eqx.combine(jax.tree.unflatten(structure, values), static)
+
+    (system, q0, qd0, t0, t1, _, dt0, args, saveat, solver, stepsize_controller, baumgarte,
+     projection, _, _) = inputs_of(leaves)
+    system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation
+    forward = diffrax.ForwardMode()
+
+    def prepared(values):
+        system, q0, qd0, t0, _, _, _, args, _, solver, _, baumgarte, projection, _, _ = \
+            inputs_of(values)
+        solver = stages_for_forward_mode(solver)
+        _, solver, term = _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection,
+                                   forward)
+        return tangent_solve.partition_inexact((solver, term, (q0, qd0), args))
+
+    pieces, piece_tangents, piece_static = tangent_solve.push(prepared, (leaves,), (tangents,),
+                                                              in_axes=(axes,))
+    solver, term, y0, _ = eqx.combine(pieces, piece_static)
+    solver_tangent, term_tangent, y0_tangent, args_tangent = piece_tangents
+    stepper = tangent_solve.TangentSolver(solver, solver_tangent)
+    controller = failures.guard(stepsize_controller, run.times_checked)
+    solution = _integrate(tangent_solve.TangentTerm(term, term_tangent, args_tangent), stepper, t0, t1, dt0, (y0, y0_tangent), args, saveat, controller,
+                          forward, None, run.max_steps, run.progress_meter, with_tangents=True)
+    ys, ys_tangent = solution.ys
+    ys_tangent = jax.tree.map(lambda x: jnp.moveaxis(x, 1, 0), ys_tangent)  # (k, T, ...)
+    term_dyn, term_static = tangent_solve.partition_inexact(term)
+
+    def finished(values, term_values, ys):
+        system, q0, qd0, t0, t1, _, _, args, _, _, _, _, projection, _, _ = inputs_of(values)
+        fast = eqx.combine(term_values, term_static).vector_field.system
+        trajectory = _finish(system, fast, projection, solution, ys, t0, t1, q0, qd0, args,
+                             run.max_steps)
+        return eqx.partition(trajectory, eqx.is_inexact_array)
+
+    return tangent_solve.push(finished, (leaves, term_dyn, ys),
+                              (tangents, term_tangent, ys_tangent), in_axes=(axes, 0, 0))
 
 
 class _Run(eqx.Module):
@@ -172,6 +271,40 @@ class _Run(eqx.Module):
     check: bool = eqx.field(static=True)
     tolerance: Any
     times_checked: bool = eqx.field(static=True, default=False)
+
+    def may_solve_with_tangents(self, inputs) -> bool:
+        """Whether :meth:`solves_with_tangents` holds for some perturbed inputs (those of the
+        steps): the run's options allow the tangent solve."""
+        return self.solves_with_tangents(inputs, None)
+
+    def solves_with_tangents(self, inputs, perturbed) -> bool:
+        """Whether :func:`_solve_with_tangents` gives this run's forward sensitivities when the
+        inexact input leaves flagged in ``perturbed`` (a list in leaf order) are differentiated:
+        a plain solve (no events), an explicit ODE solver, a guarded controller, states saved
+        as they are, and no perturbed time, save time, controller or progress meter."""
+        (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller, baumgarte,
+         projection, events, event) = inputs
+        if self.segmented or event is not None or events:
+            return False
+        if isinstance(solver, (diffrax.AbstractImplicitSolver, diffrax.AbstractSRK)) or \
+                isinstance(stepsize_controller, diffrax.StepTo):
+            return False
+        subs = jax.tree.leaves(saveat.subs, is_leaf=lambda x: isinstance(x, diffrax.SubSaveAt))
+        if saveat.dense or saveat.solver_state or saveat.made_jump or \
+                any(sub.fn is not _SAVE_Y for sub in subs):
+            return False
+        if perturbed is None:
+            return True
+        counts = [len(jax.tree.leaves(eqx.filter(x, eqx.is_inexact_array))) for x in inputs]
+        stepped = (True, True, True, False, False, False, False, True, False, True, False, True,
+                   True, False, False)  # system, q0, qd0, args, solver, baumgarte, projection
+        flags = iter(perturbed)
+        return all(not next(flags) or ok for ok, count in zip(stepped, counts)
+                   for _ in range(count))
+
+    def push_along(self, primals, static, tangents, axes, structure):
+        """``(outputs, tangents, rest)`` along k directions: :func:`_solve_with_tangents`."""
+        return _solve_with_tangents(self, static, primals, tangents, axes, structure)
 
     def __call__(self, inputs, adjoint):
         (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller, baumgarte,
@@ -352,7 +485,12 @@ def simulate(
         # are concrete unless the caller itself is being traced: on the host then, and the
         # program of the forward sensitivities carries no check (JAX can cache it on disk).
         unchecked = dataclasses.replace(run, check=False)
-        captured, shapes = trace_outputs(unchecked, inputs, adjoint.inner)
+        if unchecked.may_solve_with_tangents(inputs):
+            # jax.grad will use the one-loop tangent solve, which needs no output shapes: the
+            # test traces one solver step, not the loop.
+            captured, shapes = captures_traced_values(_one_step, inputs), None
+        else:
+            captured, shapes = trace_outputs(unchecked, inputs, adjoint.inner)
         if captured:
             trajectory = run(inputs, adjoint.fallback)
         else:

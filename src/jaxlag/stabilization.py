@@ -294,6 +294,16 @@ def _consistent_state(system, q0, qd0, t0, args, newton_steps, tolerance, free_q
     return q, qd
 
 
+def stages_for_forward_mode(solver):
+    """``solver`` with its Runge–Kutta stages scanned by ``lax`` (``scan_kind="lax"``), as
+    forward-mode differentiation of a step needs (diffrax's default scan is checkpointed for
+    reverse mode, which ``jax.jvp`` cannot go through). Other solvers are returned as they are."""
+    if (isinstance(solver, (diffrax.AbstractRungeKutta, diffrax.AbstractSRK))
+            and solver.scan_kind is None):
+        solver = eqx.tree_at(lambda s: s.scan_kind, solver, "lax", is_leaf=lambda x: x is None)
+    return solver
+
+
 def wrap_for_projection(solver, system, projection, adjoint, active=None):
     """``ProjectedSolver(solver, ...)``, made compatible with ``diffrax.ForwardMode``.
 
@@ -301,8 +311,6 @@ def wrap_for_projection(solver, system, projection, adjoint, active=None):
     the checkpointed scan in forward mode) and sets that itself on the solver it is handed; a
     wrapped solver hides the field, so it is set here on the inner solver.
     """
-    if (isinstance(adjoint, diffrax.ForwardMode)
-            and isinstance(solver, (diffrax.AbstractRungeKutta, diffrax.AbstractSRK))
-            and solver.scan_kind is None):
-        solver = eqx.tree_at(lambda s: s.scan_kind, solver, "lax", is_leaf=lambda x: x is None)
+    if isinstance(adjoint, diffrax.ForwardMode):
+        solver = stages_for_forward_mode(solver)
     return ProjectedSolver(solver, system, projection, active)
