@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -334,3 +335,56 @@ def test_simulations_traced_in_parallel_threads():
     assert eqxi.prevbefore is original
     for size in sizes:
         np.testing.assert_allclose(results[size], run(size), rtol=0, atol=1e-13)
+
+
+class _CountingSolver(diffrax.AbstractWrappedSolver):
+    """Tsit5 that counts the Python executions (traces) of its step."""
+
+    solver: diffrax.AbstractSolver = diffrax.Tsit5()
+    calls: list = eqx.field(static=True, default_factory=list)
+
+    def __hash__(self):
+        return id(self.calls)
+
+    def __eq__(self, other):
+        return isinstance(other, _CountingSolver) and other.calls is self.calls
+
+    term_structure = property(lambda self: self.solver.term_structure)
+    interpolation_cls = property(lambda self: self.solver.interpolation_cls)
+    scan_kind = property(lambda self: self.solver.scan_kind)
+
+    def order(self, terms):
+        return self.solver.order(terms)
+
+    def error_order(self, terms):
+        return self.solver.error_order(terms)
+
+    def init(self, terms, t0, t1, y0, args):
+        return self.solver.init(terms, t0, t1, y0, args)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        self.calls.append(1)
+        return self.solver.step(terms, t0, t1, y0, args, solver_state, made_jump)
+
+    def func(self, terms, t0, y0, args):
+        return self.solver.func(terms, t0, y0, args)
+
+
+@pytest.mark.parametrize("constrained", [False, True])
+def test_solver_step_traced_once_per_solve(constrained):
+    """diffrax traces its loop body three times; jaxlag's solver step (with the equations of
+    motion and the projection in it) is traced once for simulate and once for the tangent solve
+    of jax.grad (jaxlag.step_once)."""
+    holonomic = (lambda q, args: jnp.array([q[0] - args["R"]])) if constrained else None
+    system = jl.System(lambda q, qd, args: 0.5 * jnp.sum(qd**2) - args["g"] * q[1], holonomic)
+    args = {"g": 9.81, "R": 1.0}
+    solver = _CountingSolver()
+    traj = jl.simulate(system, jnp.array([1.0, 0.0]), jnp.array([0.0, 0.5]),
+                       jnp.linspace(0.0, 1.0, 5), args=args, solver=solver)
+    assert len(solver.calls) == 1
+    # The same physics as without the wrapper: y = 0.5 t − g t²/2.
+    np.testing.assert_allclose(traj.q[:, 1], 0.5 * traj.t - 0.5 * 9.81 * traj.t**2, atol=1e-10)
+    solver.calls.clear()
+    jax.grad(lambda a: jl.simulate(system, jnp.array([1.0, 0.0]), jnp.array([0.0, 0.5]),
+                                   jnp.linspace(0.0, 1.0, 5), args=a, solver=solver).q[-1, 1])(args)
+    assert len(solver.calls) == 2  # the closure test's one step, the tangent solve's one

@@ -99,6 +99,19 @@ def _compiled_at_top_level() -> bool:
         return False
 
 
+def no_transformation_active() -> bool:
+    """Whether code runs outside every JAX transformation (no ``jit``, ``grad``, ``vmap``
+    trace): then no function can close over a traced value. Conservative: False when unsure
+    (JAX's trace stack has no public API)."""
+    try:
+        from jax._src import core
+
+        stack = core.unsafe_get_trace_stack(core.trace_ctx.trace)
+        return all(type(trace).__name__ == "EvalTrace" for trace in stack)
+    except Exception:  # noqa: BLE001 - private API moved: assume a transformation
+        return False
+
+
 class _BackendJit:
     """``eqx.filter_jit(fn)`` that compiles with :func:`compiler_options` of the default backend.
 

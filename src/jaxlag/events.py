@@ -39,6 +39,7 @@ from .constraints import holonomic_residual
 from .conventions import wrap_event_function
 from .kkt import accelerations_and_multipliers
 from .stabilization import project_state, wrap_for_projection
+from .step_once import StepOnce
 
 _NO_EVENT, _END, _RELEASE, _CONTACT, _USER = -1, 0, 1, 2, 3
 KIND_NAMES = {_NO_EVENT: "none", _END: "end", _RELEASE: "release", _CONTACT: "contact",
@@ -196,6 +197,7 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
         this_solver = solver
         if projection is not None:
             this_solver = wrap_for_projection(solver, system, projection, adjoint, active)
+        this_solver = StepOnce(this_solver)  # traced once, not once per diffrax body trace
         controller = failures.guard(stepsize_controller, times_checked)
         with (compilation.diffrax_checks_done_on_host(failures.skips_diffrax_checks(controller)),
               compilation.ulp_chains_as_loops()):

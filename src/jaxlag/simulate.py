@@ -34,6 +34,7 @@ from .sensitivities import (
     trace_outputs,
 )
 from .stabilization import Baumgarte, Projection, stages_for_forward_mode, wrap_for_projection
+from .step_once import StepOnce
 from .system import System
 from .trajectory import Trajectory
 
@@ -173,6 +174,7 @@ def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, save
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
     fast, solver, term = _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection,
                                   adjoint)
+    solver = StepOnce(solver)
     # Failures are recorded (jaxlag.failures), not thrown by diffrax: simulate raises with the
     # numbers and a diagnosis instead of "max_steps reached" after 65,536 rejected NaN steps.
     controller = failures.guard(stepsize_controller, times_checked)
@@ -239,8 +241,10 @@ def _solve_with_tangents(run, static, primals, tangents, axes, structure):
     solver_tangent, term_tangent, y0_tangent, args_tangent = piece_tangents
     stepper = tangent_solve.TangentSolver(solver, solver_tangent)
     controller = failures.guard(stepsize_controller, run.times_checked)
-    solution = _integrate(tangent_solve.TangentTerm(term, term_tangent, args_tangent), stepper, t0, t1, dt0, (y0, y0_tangent), args, saveat, controller,
-                          forward, None, run.max_steps, run.progress_meter, with_tangents=True)
+    variational = tangent_solve.TangentTerm(term, term_tangent, args_tangent)
+    solution = _integrate(variational, stepper, t0, t1, dt0, (y0, y0_tangent), args, saveat,
+                          controller, forward, None, run.max_steps, run.progress_meter,
+                          with_tangents=True)
     ys, ys_tangent = solution.ys
     ys_tangent = jax.tree.map(lambda x: jnp.moveaxis(x, 1, 0), ys_tangent)  # (k, T, ...)
     term_dyn, term_static = tangent_solve.partition_inexact(term)
@@ -504,8 +508,11 @@ def simulate(
                                                    prepare)
     elif isinstance(adjoint, ForwardSensitivities):
         # No traced input; a user function may still close over a value of the caller's grad,
-        # which the fallback (reverse-mode) adjoint differentiates.
-        trajectory = run(inputs, adjoint.fallback)
+        # which the fallback (reverse-mode) adjoint differentiates. Outside every transformation
+        # nothing can be captured: the plain loop of the inner adjoint traces faster than the
+        # checkpointed one (and is the one jax.grad's closure test and tangent solve share).
+        plain = compilation.no_transformation_active()
+        trajectory = run(inputs, adjoint.inner if plain else adjoint.fallback)
     else:
         trajectory = run(inputs, adjoint)
     return _raise_if_failed(trajectory, system, args) if throw else trajectory
