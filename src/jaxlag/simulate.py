@@ -184,25 +184,17 @@ def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, save
                    max_steps)
 
 
-def _one_step(inputs):
-    """One step of the solve of ``inputs`` as :func:`_solve` sets it up (controller start,
-    solver start, step, step-size decision, dense output, projection at a save time): every
-    user function the solver loop calls, for :func:`captures_traced_values`."""
-    (system, q0, qd0, t0, t1, _, dt0, args, _, solver, stepsize_controller, baumgarte,
-     projection, _, _) = inputs
-    fast, solver, term = _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection,
-                                  diffrax.ForwardMode())
-    controller = failures.guard(stepsize_controller)
-    y0 = (q0, qd0)
-    order = solver.error_order(term)
-    t1, controller_state = controller.init(term, t0, t1, y0, dt0, args, solver.func, order)
-    state = solver.init(term, t0, t1, y0, args)
-    y1, error, info, _, _ = solver.step(term, t0, t1, y0, args, state, False)
-    decision = controller.adapt_step_size(t0, t1, y0, y1, args, error, order, controller_state)
-    saved = solver.interpolation_cls(t0=t0, t1=t1, **info).evaluate(t1)
-    if projection is not None:
-        saved = projection(fast, saved[0], saved[1], t1, args)
-    return decision, saved
+def _user_functions(inputs):
+    """Every function of the system (Lagrangian, constraints, dissipation, forces) evaluated
+    once at the initial state, for :func:`captures_traced_values`: the solver loop calls
+    nothing else that a user wrote (the solver, controller and projection are diffrax's and
+    jaxlag's modules, whose arrays are inputs, not captured values)."""
+    system, q0, qd0, t0 = inputs[:4]
+    args = inputs[7]
+    state = {"lagrangian": (q0, qd0), "holonomic": (q0,), "velocity_constraints": (q0, qd0),
+             "dissipation": (q0, qd0), "forces": (q0, qd0)}
+    return [getattr(system, name)(*values, t=t0, args=args) for name, values in state.items()
+            if getattr(system, name) is not None]
 
 
 @compilation.filter_jit
@@ -491,8 +483,8 @@ def simulate(
         unchecked = dataclasses.replace(run, check=False)
         if unchecked.may_solve_with_tangents(inputs):
             # jax.grad will use the one-loop tangent solve, which needs no output shapes: the
-            # test traces one solver step, not the loop.
-            captured, shapes = captures_traced_values(_one_step, inputs), None
+            # test traces the user's functions, not the solver loop.
+            captured, shapes = captures_traced_values(_user_functions, inputs), None
         else:
             captured, shapes = trace_outputs(unchecked, inputs, adjoint.inner)
         if captured:

@@ -85,14 +85,22 @@ class TangentInterpolation(diffrax.AbstractLocalInterpolation):
     inner_cls: Any = eqx.field(static=True)
 
     def evaluate(self, t0, t1=None, left=True):
-        dynamic, static = partition_inexact(self.primal)
+        # Jitted: diffrax's three traces of its loop body (each saving at ts) share one trace.
+        return _evaluate_tangents(self, t0, t1, left)
 
-        def value(info):
-            interpolant = self.inner_cls(t0=self.t0, t1=self.t1, **eqx.combine(info, static))
-            return interpolant.evaluate(t0, t1, left), None
 
-        y, tangents, _ = push(value, (dynamic,), (self.tangent,))
-        return y, tangents
+@eqx.filter_jit
+def _evaluate_tangents(interpolation, t, t_end, left):
+    """:meth:`TangentInterpolation.evaluate`."""
+    dynamic, static = partition_inexact(interpolation.primal)
+
+    def value(info):
+        interpolant = interpolation.inner_cls(t0=interpolation.t0, t1=interpolation.t1,
+                                              **eqx.combine(info, static))
+        return interpolant.evaluate(t, t_end, left), None
+
+    y, tangents, _ = push(value, (dynamic,), (interpolation.tangent,))
+    return y, tangents
 
 
 class TangentTerm(diffrax.AbstractTerm):
@@ -148,9 +156,10 @@ class TangentSolver(diffrax.AbstractSolver):
     solver: diffrax.AbstractSolver
     solver_tangent: Any
 
-    @property
-    def term_structure(self):
-        return self.solver.term_structure
+    # A TangentTerm, whatever the wrapped solver takes inside it. (diffrax checks a structure
+    # with vector-field types by evaluating the vector field once: for the variational term a
+    # push of the equations of motion, traced for nothing but that check.)
+    term_structure = TangentTerm
 
     @property
     def term_compatible_contr_kwargs(self):
@@ -203,6 +212,11 @@ class TangentSolver(diffrax.AbstractSolver):
         # static); jitted, the derivative of the step is traced once and then served from
         # JAX's tracing cache.
         return _tangent_step(self, terms, t0, t1, y0, args, solver_state, made_jump)
+
+    def primal_func(self, terms, t0, y0, args):
+        """The wrapped solver's ``func`` of the primal term and state (the step-size start)."""
+        tangent_term, rewrap = _unwrap(terms)
+        return self.solver.func(rewrap(tangent_term.term), t0, y0, args)
 
     def func(self, terms, t0, y0, args):
         y, tangents_y = y0
@@ -261,9 +275,12 @@ class PrimalStepSizes(diffrax.AbstractStepSizeController):
         return type(self)(self.controller.wrap(direction))
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
-        zeros = jax.tree.map(jnp.zeros_like, y0[1])
-        return self.controller.init(terms, t0, t1, y0[0], dt0, args, _primal_func(func, zeros),
-                                    error_order)
+        owner = getattr(func, "__self__", None)
+        if isinstance(owner, TangentSolver):  # no tangents traced for the initial step size
+            primal = owner.primal_func
+        else:
+            primal = _primal_func(func, jax.tree.map(jnp.zeros_like, y0[1]))
+        return self.controller.init(terms, t0, t1, y0[0], dt0, args, primal, error_order)
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order,
                         controller_state):
