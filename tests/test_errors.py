@@ -66,3 +66,32 @@ def test_missing_time_span():
 def test_integer_initial_state_is_promoted():
     traj = jl.simulate(jl.System(oscillator), [1], [0], TS)
     assert jnp.issubdtype(traj.q.dtype, jnp.floating)
+
+
+def test_host_and_compiled_initial_checks_agree():
+    """Eager checks take M's eigenvalues and the constraint rows' singular values with NumPy on
+    the host (no LAPACK in the check program: its first lowering costs ~0.1 s a process); the
+    compiled check (under jit, vmap, simulate_batch) takes them in the program. Same flags."""
+    import numpy as np
+
+    from jaxlag import checks
+
+    def pendulum(q, qd, args):
+        return 0.5 * jnp.sum(qd**2) - args["g"] * q[1]
+
+    cases = [
+        (jl.System(oscillator), [1.0, 2.0], [0.0, 0.0]),  # all fine
+        (jl.System(lambda q, qd: 0.5 * qd[0] ** 2 - 0.5 * jnp.sum(q**2)), [1.0, 2.0], [0.0, 0.0]),
+        (jl.System(pendulum, lambda q: jnp.array([jnp.sum(q**2) - 1.0])), [0.6, -0.8], [0.8, 0.6]),
+        (jl.System(pendulum, lambda q: jnp.array([jnp.sum(q**2) - 1.0])), [0.7, -0.8], [0.0, 1.0]),
+        (jl.System(pendulum, lambda q: jnp.array([jnp.sum(q**2) - 1.0, 2 * jnp.sum(q**2) - 2.0])),
+         [0.6, -0.8], [0.8, 0.6]),  # redundant rows
+    ]
+    args = {"g": 9.81}
+    for system, q, qd in cases:
+        q, qd = jnp.asarray(q), jnp.asarray(qd)
+        values, host = checks._diagnostics_on_host(system, q, qd, 0.0, args, 1e-8)
+        _, compiled = jax.device_get(checks._diagnostics(system, q, qd, 0.0, args, 1e-8))
+        assert {k: bool(v) for k, v in host.items()} == {k: bool(v) for k, v in compiled.items()}
+        np.testing.assert_allclose(values["eigenvalues"], np.linalg.eigvalsh(values["mass"]))
+    assert any(bool(v) for v in host.values())  # the redundant rows are caught

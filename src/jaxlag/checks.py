@@ -63,16 +63,34 @@ def initial_activity(system, q, t, args, tolerance):
 
 
 @compilation.filter_jit
-def _diagnostics(system, q, qd, t, args, tolerance):
-    """``(values, failures)`` at the initial state, in one compiled call (one host transfer)."""
-    values = _diagnostic_values(system, q, qd, t, args, tolerance)
-    return values, _failures(values, system.least_squares, tolerance)
+def _diagnostics(system, q, qd, t, args, tolerance, spectra=True):
+    """``(values, failures)`` at the initial state, in one compiled call (one host transfer).
+    ``spectra=False``: without the eigenvalues of ``M`` and the singular values of the
+    constraint rows, and without the failures that need them (``None``): for
+    :func:`_diagnostics_on_host`, which computes those with NumPy."""
+    values = _diagnostic_values(system, q, qd, t, args, tolerance, spectra)
+    return values, (_failures(values, system.least_squares, tolerance) if spectra else None)
 
 
-def _diagnostic_values(system, q, qd, t, args, tolerance):
+def _diagnostics_on_host(system, q, qd, t, args, tolerance):
+    """``(values, failures)`` of :func:`_diagnostics` as host (NumPy) values, the spectra
+    computed by NumPy: the program then has no LAPACK call, whose first lowering in a process
+    costs ~0.1 s (JAX registers its kernels), more than the whole check. ``None`` if the
+    values are traced (a user function closing over a traced value)."""
+    values, _ = _diagnostics(system, q, qd, t, args, tolerance, False)
+    if not _is_concrete(values):
+        return None
+    values = jax.device_get(values)
+    rows = values["rows"]
+    values["eigenvalues"] = np.linalg.eigvalsh(values["mass"])
+    values["singular_values"] = (np.linalg.svd(rows, compute_uv=False) if rows.shape[0] > 0
+                                 else np.ones((1,), rows.dtype))
+    return values, _failures(values, system.least_squares, tolerance, np)
+
+
+def _diagnostic_values(system, q, qd, t, args, tolerance, spectra=True):
     system.check(q, qd, t, args)
     mass = mass_matrix(system, q, qd, t, args)
-    eigenvalues = jnp.linalg.eigvalsh(mass)
     f, f_dot, g = _constraints.constraint_residuals(system, q, qd, t, args)
     rows, _ = _constraints.constraint_rows(system, q, qd, t, args)
     active = initial_activity(system, q, t, args, tolerance)
@@ -80,10 +98,6 @@ def _diagnostic_values(system, q, qd, t, args, tolerance):
     for i in system.unilateral:
         unilateral = unilateral.at[i].set(True)
     row_weight = jnp.concatenate([active, jnp.ones(g.shape, bool)]).astype(q.dtype)
-    if rows.shape[0] > 0:
-        singular_values = jnp.linalg.svd(rows * row_weight[:, None], compute_uv=False)
-    else:
-        singular_values = jnp.ones((1,), q.dtype)
     if system.unilateral:
         _, lam, _ = accelerations_and_multipliers(system, q, qd, t, args, active=active)
         scale = 1.0 + jnp.max(jnp.abs(lam))
@@ -95,21 +109,29 @@ def _diagnostic_values(system, q, qd, t, args, tolerance):
         jnp.max(jnp.abs(off_diagonal)) <= rcond(1e-12, q.dtype) * jnp.max(jnp.abs(mass))
     )
     parameters = [jnp.all(jnp.isfinite(x)) for x in _inexact_leaves(args)]
+    if spectra:
+        weighted = rows * row_weight[:, None]
+        spectra = dict(
+            eigenvalues=jnp.linalg.eigvalsh(mass),
+            singular_values=(jnp.linalg.svd(weighted, compute_uv=False) if rows.shape[0] > 0
+                             else jnp.ones((1,), q.dtype)),
+        )
+    else:
+        spectra = {}
     return dict(
+        **spectra,
         finite=jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(qd)),
         args_finite=jnp.stack(parameters) if parameters else jnp.ones((0,), bool),
         constraints_finite=jnp.all(jnp.isfinite(f)) & jnp.all(jnp.isfinite(f_dot))
         & jnp.all(jnp.isfinite(g)),
         not_diagonal=not_diagonal,
         mass=mass,
-        eigenvalues=eigenvalues,
         f=jnp.where(active, f, 0.0),
         f_dot=jnp.where(active, f_dot, 0.0),
         f_raw=f,
         g=g,
         rows=rows * row_weight[:, None],
         num_active=jnp.sum(row_weight),
-        singular_values=singular_values,
         violated=jnp.any(unilateral & (f < -tolerance)),
         wrong_sign=wrong_sign,
     )
@@ -129,22 +151,24 @@ def _inexact_names(tree) -> list[str]:
             jax.tree_util.tree_leaves_with_path(tree) if _is_inexact(x)]
 
 
-def _failures(d, least_squares: bool, tolerance: float):
+def _failures(d, least_squares: bool, tolerance: float, xp=jnp):
+    """Which checks fail, from :func:`_diagnostic_values` (``xp``: ``jax.numpy`` in a program,
+    ``numpy`` on the host)."""
     eig = d["eigenvalues"]
     sv = d["singular_values"]
-    residual = jnp.concatenate([jnp.abs(d["f"]), jnp.abs(d["f_dot"]), jnp.abs(d["g"]),
-                                jnp.zeros((1,), eig.dtype)])
-    rank = jnp.sum(sv > rcond(CONSTRAINT_RCOND, sv.dtype) * sv[0])
+    residual = xp.concatenate([xp.abs(d["f"]), xp.abs(d["f_dot"]), xp.abs(d["g"]),
+                               xp.zeros((1,), eig.dtype)])
+    rank = xp.sum(sv > rcond(CONSTRAINT_RCOND, sv.dtype) * sv[0])
     return dict(
         nonfinite=~d["finite"],
-        nonfinite_args=~jnp.all(d["args_finite"]),
+        nonfinite_args=~xp.all(d["args_finite"]),
         nonfinite_constraints=~d["constraints_finite"],
         not_diagonal=d["not_diagonal"],
-        mass=~(eig[0] > rcond(MASS_RCOND, eig.dtype) * jnp.max(jnp.abs(eig))),
-        rank=jnp.asarray(False)
+        mass=~(eig[0] > rcond(MASS_RCOND, eig.dtype) * xp.max(xp.abs(eig))),
+        rank=xp.asarray(False)
         if least_squares or d["rows"].shape[0] == 0
         else rank < d["num_active"],
-        off_manifold=~(jnp.max(residual) <= tolerance),
+        off_manifold=~(xp.max(residual) <= tolerance),
         violated=d["violated"],
         wrong_sign=d["wrong_sign"],
     )
@@ -273,9 +297,17 @@ def validate_initial_state(system, q, qd, t, args, tolerance: float | None):
 
     if tolerance is None:
         tolerance = default_constraint_tolerance(jnp.result_type(q))
+    static = _Static(tuple(system.unilateral), float(tolerance), tuple(_inexact_names(args)))
+    if _is_concrete((q, qd, t, args)):
+        host = _diagnostics_on_host(system, q, qd, t, args, tolerance)
+        if host is not None:
+            d, fail = host
+            text = _initial_message(dict(d, q=np.asarray(q), qd=np.asarray(qd)), fail, static)
+            if text is not None:
+                raise ValueError(text)
+            return q, qd
     d, fail = _diagnostics(system, q, qd, t, args, tolerance)
     d = dict(d, q=q, qd=qd)
-    static = _Static(tuple(system.unilateral), float(tolerance), tuple(_inexact_names(args)))
     # Concrete inputs can still give traced flags: a user function may close over a traced value.
     if _is_concrete((q, qd, t, args, fail)):
         host = jax.device_get((d, fail))  # one transfer; the values are fetched only to report
@@ -342,11 +374,14 @@ def check_state_result(system, what: str, out, q, qd, t, args):
 
     tolerance = default_constraint_tolerance(jnp.result_type(q))
     static = _Static(tuple(system.unilateral), tolerance, tuple(_inexact_names(args)))
+    host = None
     if _is_concrete((out, q, qd, t, args)):
-        d, fail = _diagnostics(system, q, qd, t, args, tolerance)
+        host = _diagnostics_on_host(system, q, qd, t, args, tolerance)
+    if host is not None:
+        d, fail = host
         flags = {k: fail[k] for k in _STATE_CHECKS}
-        bad, d, flags = jax.device_get((~jnp.all(jnp.isfinite(out)), d, flags))
-        if bool(bad) or any(bool(x) for x in flags.values()):
+        bad = not np.all(np.isfinite(jax.device_get(out)))
+        if bad or any(bool(x) for x in flags.values()):
             raise ValueError(_state_message(what, static, (True, dict(d, q=q, qd=qd), flags)))
         return out
     d = _diagnostic_values(system, q, qd, t, args, tolerance)
