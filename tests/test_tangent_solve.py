@@ -1,7 +1,8 @@
 r"""``jax.grad`` through ``simulate`` by the one-loop tangent solve (``jaxlag.tangent_solve``).
 
-The state and its k forward sensitivities are integrated in one diffrax loop, the solver *step*
-differentiated (diffrax does not differentiate its step-size choice either). Every gradient is
+The state and its k forward sensitivities are integrated in one diffrax loop (the variational
+equations stepped by the same solver, the projection pushed forward; diffrax does not
+differentiate its step-size choice either). Every gradient is
 compared with diffrax's ``RecursiveCheckpointAdjoint`` on the same problem: both differentiate
 the same discrete solver with the same steps, so they agree to rounding accumulated over the
 run (measured ≤ 5e-16 relative on the README example); 1e-9 relative as in

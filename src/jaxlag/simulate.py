@@ -231,7 +231,9 @@ def _solve_with_tangents(run, static, primals, tangents, axes, structure):
                                                               in_axes=(axes,))
     solver, term, y0, _ = eqx.combine(pieces, piece_static)
     solver_tangent, term_tangent, y0_tangent, args_tangent = piece_tangents
-    stepper = tangent_solve.TangentSolver(solver, solver_tangent)
+    # The projected solver's system (M found constant, from the parameters) has tangents too.
+    projected = getattr(solver_tangent, "system", None) if projection is not None else None
+    stepper = tangent_solve.TangentSolver(solver, projected)
     controller = failures.guard(stepsize_controller, run.times_checked)
     variational = tangent_solve.TangentTerm(term, term_tangent, args_tangent)
     solution = _integrate(variational, stepper, t0, t1, dt0, (y0, y0_tangent), args, saveat,
@@ -292,8 +294,8 @@ class _Run(eqx.Module):
         if perturbed is None:
             return True
         counts = [len(jax.tree.leaves(eqx.filter(x, eqx.is_inexact_array))) for x in inputs]
-        stepped = (True, True, True, False, False, False, False, True, False, True, False, True,
-                   True, False, False)  # system, q0, qd0, args, solver, baumgarte, projection
+        stepped = (True, True, True, False, False, False, False, True, False, False, False, True,
+                   True, False, False)  # system, q0, qd0, args, baumgarte, projection
         flags = iter(perturbed)
         return all(not next(flags) or ok for ok, count in zip(stepped, counts)
                    for _ in range(count))

@@ -15,24 +15,29 @@ with ``Φ`` the solver step (including whatever it wraps, e.g. jaxlag's projecti
 constraint manifold) and the same ``tₙ``. This module runs that recursion inside one ordinary
 ``diffrax.diffeqsolve`` of the augmented state ``(y, Y)``, ``Y`` holding k tangents:
 
-* :class:`TangentSolver` wraps the solver: its step is ``jax.jvp`` of the wrapped step along the
-  k directions (``jax.vmap`` over the tangents only: the primal is computed once), and it
-  carries the tangents of the solver state (first-same-as-last stages) and of the dense output;
+* :class:`TangentTerm` is the variational vector field ``(f, ∂f/∂y·Y + ∂f/∂θ·δ)`` (``jax.jvp``
+  of the equations of motion along the k directions, ``jax.vmap`` over the tangents only: the
+  primal is computed once). An explicit Runge–Kutta step of it is exactly the ``jvp`` of the
+  step of ``f`` (each stage is a vector-field evaluation, the rest is linear in the stages), and
+  the solver's dense output, linear in its stages too, interpolates ``Y`` with ``y``;
+* :class:`TangentSolver` steps it with the wrapped solver; a projected solver's projection of
+  ``y`` after the step is pushed forward along the k tangents (``push``);
 * :class:`PrimalStepSizes` wraps the step-size controller so that it sees the primal state and
-  error estimate only: the steps are exactly those of the primal run;
-* :func:`tangent_interpolation` evaluates the primal interpolant and its tangents at save times.
+  error estimate only: the steps are exactly those of the primal run.
 
-The parameters ``θ`` enter the step through ``args``, the term and the solver's own array
-fields (a projected solver holds the system); their tangents along the k directions are fields
-of :class:`TangentSolver` (k leading). Times are not differentiated here.
+The parameters ``θ`` enter through ``args`` and the term's arrays (and the projected solver's
+system); their tangents along the k directions are fields of :class:`TangentTerm` and
+:class:`TangentSolver` (k leading). Times are not differentiated here. The gradient equals
+``jax.vmap(jax.jvp(...))`` of the solve to rounding (≤ 5e-16 relative measured on the README
+example; tests compare with diffrax's ``RecursiveCheckpointAdjoint``).
 
 Explicit solvers only (an implicit step's root find is differentiable, but diffrax fills in
-its tolerances from the controller only for a solver it recognises as implicit).
+its tolerances from the controller only for a solver it recognises as implicit), whose own
+arrays are not differentiated.
 """
 
 from __future__ import annotations
 
-import functools as ft
 from typing import Any
 
 import diffrax
@@ -68,41 +73,6 @@ def push(fn, primals, tangents, in_axes=0):
     return out, tangents_out, eqx.combine(arrays, held["static"])
 
 
-def tangent_interpolation(t0, t1, primal, tangent, inner_cls):
-    """The interpolant of the augmented state: ``inner_cls`` on the primal dense information
-    and, along each of the k directions, its derivative with respect to that information
-    (the step's end points ``t0``, ``t1`` fixed)."""
-    return TangentInterpolation(t0=t0, t1=t1, primal=primal, tangent=tangent, inner_cls=inner_cls)
-
-
-class TangentInterpolation(diffrax.AbstractLocalInterpolation):
-    """``evaluate(t) = (y(t), Y(t))``: see :func:`tangent_interpolation`."""
-
-    t0: Any
-    t1: Any
-    primal: Any
-    tangent: Any
-    inner_cls: Any = eqx.field(static=True)
-
-    def evaluate(self, t0, t1=None, left=True):
-        # Jitted: diffrax's three traces of its loop body (each saving at ts) share one trace.
-        return _evaluate_tangents(self, t0, t1, left)
-
-
-@eqx.filter_jit
-def _evaluate_tangents(interpolation, t, t_end, left):
-    """:meth:`TangentInterpolation.evaluate`."""
-    dynamic, static = partition_inexact(interpolation.primal)
-
-    def value(info):
-        interpolant = interpolation.inner_cls(t0=interpolation.t0, t1=interpolation.t1,
-                                              **eqx.combine(info, static))
-        return interpolant.evaluate(t, t_end, left), None
-
-    y, tangents, _ = push(value, (dynamic,), (interpolation.tangent,))
-    return y, tangents
-
-
 class TangentTerm(diffrax.AbstractTerm):
     """The variational term of ``term``: ``vf(t, (y, Y), args) = (f, ∂f/∂y·Y + ∂f/∂θ·δ)`` along
     k directions, ``term_tangent`` (the derivatives of the inexact leaves of ``term``, k leading,
@@ -114,17 +84,9 @@ class TangentTerm(diffrax.AbstractTerm):
     args_tangent: Any
 
     def vf(self, t, y, args):
-        y, tangents_y = y
-        term_dyn, term_static = partition_inexact(self.term)
-        args_dyn, args_static = partition_inexact(args)
-
-        def field(term_dyn, y, args_dyn):
-            term = eqx.combine(term_dyn, term_static)
-            return term.vf(t, y, eqx.combine(args_dyn, args_static)), None
-
-        value, tangents, _ = push(field, (term_dyn, y, args_dyn),
-                                  (self.term_tangent, tangents_y, self.args_tangent))
-        return value, tangents
+        # Jitted: diffrax's term check, the step-size start and every trace of the solver step
+        # share one trace of the pushed equations of motion.
+        return _variational_field(self, t, y, args)
 
     def contr(self, t0, t1, **kwargs):
         return self.term.contr(t0, t1, **kwargs)
@@ -133,6 +95,22 @@ class TangentTerm(diffrax.AbstractTerm):
         value, tangents = vf
         return (self.term.prod(value, control),
                 jax.vmap(lambda v: self.term.prod(v, control))(tangents))
+
+
+@eqx.filter_jit
+def _variational_field(tangent_term, t, y, args):
+    """:meth:`TangentTerm.vf`."""
+    y, tangents_y = y
+    term_dyn, term_static = partition_inexact(tangent_term.term)
+    args_dyn, args_static = partition_inexact(args)
+
+    def field(term_dyn, y, args_dyn):
+        term = eqx.combine(term_dyn, term_static)
+        return term.vf(t, y, eqx.combine(args_dyn, args_static)), None
+
+    value, tangents, _ = push(field, (term_dyn, y, args_dyn),
+                              (tangent_term.term_tangent, tangents_y, tangent_term.args_tangent))
+    return value, tangents
 
 
 def _unwrap(terms):
@@ -147,18 +125,22 @@ def _unwrap(terms):
 
 
 class TangentSolver(diffrax.AbstractSolver):
-    """The wrapped ``solver`` applied to ``(y, Y)`` of a :class:`TangentTerm`: ``Y`` (k leading)
-    are the derivatives of ``y`` along k directions of the parameters, whose derivatives in
-    the solver's own array fields are ``solver_tangent`` (structured as
-    ``eqx.partition(solver, eqx.is_inexact_array)[0]``, k leading) and in the term and ``args``
-    the term's. The error estimate is the primal one (pair it with :class:`PrimalStepSizes`)."""
+    """``solver`` stepping a :class:`TangentTerm` on ``(y, Y)``, ``Y`` (k leading) the
+    derivatives of ``y`` along k directions of the parameters.
+
+    An explicit Runge–Kutta step of the variational equations is the ``jvp`` of the step of
+    the equations (every stage is a vector-field evaluation and the rest is linear), so the
+    wrapped solver steps the augmented state as it is, its dense output interpolates both. A
+    :class:`~jaxlag.stabilization.ProjectedSolver` projects ``y`` after the step and pushes
+    ``Y`` through the projection (``push``), with the derivatives of its system's arrays,
+    ``projection_tangent`` (structured as ``eqx.partition(solver.system, is_inexact)[0]``, k
+    leading), and of ``args`` (the term's). The error estimate includes the tangents: pair the
+    solver with :class:`PrimalStepSizes`, which looks at the state's only."""
 
     solver: diffrax.AbstractSolver
-    solver_tangent: Any
+    projection_tangent: Any = None
 
-    # A TangentTerm, whatever the wrapped solver takes inside it. (diffrax checks a structure
-    # with vector-field types by evaluating the vector field once: for the variational term a
-    # push of the equations of motion, traced for nothing but that check.)
+    # A TangentTerm, whatever the wrapped solver takes inside it.
     term_structure = TangentTerm
 
     @property
@@ -167,7 +149,7 @@ class TangentSolver(diffrax.AbstractSolver):
 
     @property
     def interpolation_cls(self):  # pyright: ignore
-        return ft.partial(tangent_interpolation, inner_cls=self.solver.interpolation_cls)
+        return self.solver.interpolation_cls  # linear in the dense information
 
     def order(self, terms):
         return self.solver.order(terms)
@@ -178,39 +160,11 @@ class TangentSolver(diffrax.AbstractSolver):
     def error_order(self, terms):
         return self.solver.error_order(terms)
 
-    def _tangents_of(self, terms, args):
-        """The parameters' primal pieces and tangents: ``(primals, tangents, rebuild)``."""
-        tangent_term, rewrap = _unwrap(terms)
-        term_dyn, term_static = partition_inexact(tangent_term.term)
-        solver_dyn, solver_static = partition_inexact(self.solver)
-        args_dyn, args_static = partition_inexact(args)
-
-        def rebuild(term_values, solver_values, args_values):
-            return (rewrap(eqx.combine(term_values, term_static)),
-                    eqx.combine(solver_values, solver_static),
-                    eqx.combine(args_values, args_static))
-
-        return ((term_dyn, solver_dyn, args_dyn),
-                (tangent_term.term_tangent, self.solver_tangent, tangent_term.args_tangent),
-                rebuild)
-
     def init(self, terms, t0, t1, y0, args):
-        y, tangents_y = y0
-        (params, param_tangents, rebuild) = self._tangents_of(terms, args)
-
-        def initial(params, y):
-            term, solver, args_ = rebuild(*params)
-            state = solver.init(term, t0, t1, y, args_)
-            dynamic, static = partition_inexact(state)
-            return dynamic, static
-
-        state, state_tangent, static = push(initial, (params, y), (param_tangents, tangents_y))
-        return eqx.combine(state, static), state_tangent
+        return self.solver.init(terms, t0, t1, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        # diffrax traces its loop body three times (twice to find which of its state is
-        # static); jitted, the derivative of the step is traced once and then served from
-        # JAX's tracing cache.
+        # Jitted: diffrax traces its loop body three times, the step is traced once.
         return _tangent_step(self, terms, t0, t1, y0, args, solver_state, made_jump)
 
     def primal_func(self, terms, t0, y0, args):
@@ -219,40 +173,32 @@ class TangentSolver(diffrax.AbstractSolver):
         return self.solver.func(rewrap(tangent_term.term), t0, y0, args)
 
     def func(self, terms, t0, y0, args):
-        y, tangents_y = y0
-        (params, param_tangents, rebuild) = self._tangents_of(terms, args)
-
-        def field(params, y):
-            term, solver, args_ = rebuild(*params)
-            return solver.func(term, t0, y, args_), None
-
-        value, tangents, _ = push(field, (params, y), (param_tangents, tangents_y))
-        return value, tangents
+        return self.solver.func(terms, t0, y0, args)
 
 
 @eqx.filter_jit
 def _tangent_step(stepper, terms, t0, t1, y0, args, solver_state, made_jump):
-    """:meth:`TangentSolver.step`: the wrapped step and its k derivatives (``push``)."""
-    y, tangents_y = y0
-    state, state_tangent = solver_state
-    state_dyn, state_static = partition_inexact(state)
-    (params, param_tangents, rebuild) = stepper._tangents_of(terms, args)
+    """:meth:`TangentSolver.step`."""
+    from .stabilization import ProjectedSolver
 
-    def stepped(params, y, state_dyn):
-        term, solver, args_ = rebuild(*params)
-        y1, y_error, dense_info, new_state, result = solver.step(
-            term, t0, t1, y, args_, eqx.combine(state_dyn, state_static), made_jump)
-        info_dyn, info_static = partition_inexact(dense_info)
-        new_dyn, new_static = partition_inexact(new_state)
-        return (y1, info_dyn, new_dyn), (y_error, info_static, new_static, result)
+    solver = stepper.solver
+    if type(solver) is not ProjectedSolver:
+        return solver.step(terms, t0, t1, y0, args, solver_state, made_jump)
+    y1, y_error, dense_info, solver_state, result = solver.solver.step(
+        terms, t0, t1, y0, args, solver_state, made_jump)
+    tangent_term, _ = _unwrap(terms)
+    system_dyn, system_static = partition_inexact(solver.system)
+    args_dyn, args_static = partition_inexact(args)
 
-    (y1, info, new_state), tangents, aux = push(
-        stepped, (params, y, state_dyn), (param_tangents, tangents_y, state_tangent))
-    tangent_y1, tangent_info, tangent_state = tangents
-    y_error, info_static, new_static, result = aux
-    dense_info = dict(primal=eqx.combine(info, info_static), tangent=tangent_info)
-    return ((y1, tangent_y1), (y_error, None), dense_info,
-            (eqx.combine(new_state, new_static), tangent_state), result)
+    def projected(system_dyn, y, args_dyn):
+        system = eqx.combine(system_dyn, system_static)
+        q, qd = solver.projection(system, y[0], y[1], t1, eqx.combine(args_dyn, args_static),
+                                  solver.active)
+        return (q, qd), None
+
+    y1, tangents, _ = push(projected, (system_dyn, y1[0], args_dyn),
+                           (stepper.projection_tangent, y1[1], tangent_term.args_tangent))
+    return (y1, tangents), y_error, dense_info, solver_state, result
 
 
 def _primal_func(func, zeros):
