@@ -30,6 +30,7 @@ import numpy as np
 
 from . import compilation
 from . import constraints as _constraints
+from .solver_wrapping import ForwardingSolver
 from .conventions import as_array_leaves, as_jax_array
 from .kkt import deactivate
 from .linalg import solve_psd_least_squares, solve_spd, spd_solver
@@ -136,13 +137,15 @@ class Projection(eqx.Module):
         return project_state(system, q, qd, t, args, self.newton_steps, active)
 
 
-class ProjectedSolver(diffrax.AbstractWrappedSolver):
+class ProjectedSolver(ForwardingSolver, diffrax.AbstractWrappedSolver):
     """A diffrax solver wrapper that projects each step's end state onto the constraint manifold.
 
     The wrapped solver's error estimate (of the unprojected step) drives step-size control; the
     first-same-as-last stage that some solvers carry to the next step is the unprojected one,
     which differs from the projected state by the drift of a single step (at the level of the
-    local error) and so does not change the order of the method.
+    local error) and so does not change the order of the method. diffrax's ForwardMode reads
+    ``scan_kind`` on Runge–Kutta solvers (``isinstance`` is forwarded to the inner solver): the
+    forwarded field, see :func:`wrap_for_projection`.
     """
 
     solver: diffrax.AbstractSolver
@@ -150,45 +153,12 @@ class ProjectedSolver(diffrax.AbstractWrappedSolver):
     projection: Projection
     active: Any = None
 
-    @property
-    def scan_kind(self):
-        # diffrax's ForwardMode reads this on Runge–Kutta solvers (isinstance is forwarded to the
-        # inner solver); see wrap_for_projection.
-        return getattr(self.solver, "scan_kind", None)
-
-    @property
-    def term_structure(self):
-        return self.solver.term_structure
-
-    @property
-    def interpolation_cls(self):  # pyright: ignore
-        return self.solver.interpolation_cls
-
-    @property
-    def term_compatible_contr_kwargs(self):
-        return self.solver.term_compatible_contr_kwargs
-
-    def order(self, terms):
-        return self.solver.order(terms)
-
-    def strong_order(self, terms):
-        return self.solver.strong_order(terms)
-
-    def error_order(self, terms):
-        return self.solver.error_order(terms)
-
-    def init(self, terms, t0, t1, y0, args):
-        return self.solver.init(terms, t0, t1, y0, args)
-
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         y1, y_error, dense_info, solver_state, result = self.solver.step(
             terms, t0, t1, y0, args, solver_state, made_jump
         )
         q1, qd1 = self.projection(self.system, y1[0], y1[1], t1, args, self.active)
         return (q1, qd1), y_error, dense_info, solver_state, result
-
-    def func(self, terms, t0, y0, args):
-        return self.solver.func(terms, t0, y0, args)
 
 
 def _free_mask(indices, n, dtype, name):

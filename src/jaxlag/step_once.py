@@ -15,50 +15,19 @@ from __future__ import annotations
 import diffrax
 import equinox as eqx
 
+from .solver_wrapping import ForwardingSolver
+
 
 @eqx.filter_jit
 def _step(solver, terms, t0, t1, y0, args, solver_state, made_jump):
     return solver.step(terms, t0, t1, y0, args, solver_state, made_jump)
 
 
-class StepOnce(diffrax.AbstractWrappedSolver):
+class StepOnce(ForwardingSolver, diffrax.AbstractWrappedSolver):
     """``solver`` with its ``step`` traced once per solve (see module). ``isinstance`` checks
     see the wrapped solver (diffrax's wrapped-solver convention)."""
 
     solver: diffrax.AbstractSolver
 
-    @property
-    def scan_kind(self):
-        # diffrax's adjoints set this on Runge–Kutta solvers (isinstance sees the inner one);
-        # returning the inner field lets their eqx.tree_at reach it.
-        return getattr(self.solver, "scan_kind", None)
-
-    @property
-    def term_structure(self):
-        return self.solver.term_structure
-
-    @property
-    def interpolation_cls(self):  # pyright: ignore
-        return self.solver.interpolation_cls
-
-    @property
-    def term_compatible_contr_kwargs(self):
-        return self.solver.term_compatible_contr_kwargs
-
-    def order(self, terms):
-        return self.solver.order(terms)
-
-    def strong_order(self, terms):
-        return self.solver.strong_order(terms)
-
-    def error_order(self, terms):
-        return self.solver.error_order(terms)
-
-    def init(self, terms, t0, t1, y0, args):
-        return self.solver.init(terms, t0, t1, y0, args)
-
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         return _step(self.solver, terms, t0, t1, y0, args, solver_state, made_jump)
-
-    def func(self, terms, t0, y0, args):
-        return self.solver.func(terms, t0, y0, args)

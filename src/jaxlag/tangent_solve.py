@@ -45,6 +45,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .solver_wrapping import ForwardingSolver
+
 
 def partition_inexact(tree):
     """``eqx.partition`` into inexact arrays (differentiated) and the rest."""
@@ -124,7 +126,7 @@ def _unwrap(terms):
     raise TypeError(f"TangentSolver steps a TangentTerm; got {type(terms).__name__}.")
 
 
-class TangentSolver(diffrax.AbstractSolver):
+class TangentSolver(ForwardingSolver):
     """``solver`` stepping a :class:`TangentTerm` on ``(y, Y)``, ``Y`` (k leading) the
     derivatives of ``y`` along k directions of the parameters.
 
@@ -143,26 +145,6 @@ class TangentSolver(diffrax.AbstractSolver):
     # A TangentTerm, whatever the wrapped solver takes inside it.
     term_structure = TangentTerm
 
-    @property
-    def term_compatible_contr_kwargs(self):
-        return self.solver.term_compatible_contr_kwargs
-
-    @property
-    def interpolation_cls(self):  # pyright: ignore
-        return self.solver.interpolation_cls  # linear in the dense information
-
-    def order(self, terms):
-        return self.solver.order(terms)
-
-    def strong_order(self, terms):
-        return self.solver.strong_order(terms)
-
-    def error_order(self, terms):
-        return self.solver.error_order(terms)
-
-    def init(self, terms, t0, t1, y0, args):
-        return self.solver.init(terms, t0, t1, y0, args)
-
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         # Jitted: diffrax traces its loop body three times, the step is traced once.
         return _tangent_step(self, terms, t0, t1, y0, args, solver_state, made_jump)
@@ -171,9 +153,6 @@ class TangentSolver(diffrax.AbstractSolver):
         """The wrapped solver's ``func`` of the primal term and state (the step-size start)."""
         tangent_term, rewrap = _unwrap(terms)
         return self.solver.func(rewrap(tangent_term.term), t0, y0, args)
-
-    def func(self, terms, t0, y0, args):
-        return self.solver.func(terms, t0, y0, args)
 
 
 @eqx.filter_jit
