@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import compilation
+from .solver_wrapping import ForwardingAdaptiveController
 
 NONE, NONFINITE, MAX_STEPS, SOLVER, MAX_SEGMENTS, COLLAPSED = 0, 1, 2, 3, 4, 5
 _ULPS = 64  # a step at most this many ulps of the time scale is at round-off
@@ -108,7 +109,7 @@ def _guarded_adapt(controller, adaptive, t0, t1, y0, y1_candidate, args, y_error
     return keep, tprev, tnext, jump, new, result
 
 
-class FiniteStepGuard(diffrax.AbstractAdaptiveStepSizeController):
+class FiniteStepGuard(ForwardingAdaptiveController):
     """Wraps an adaptive controller: stop at a non-finite step of round-off size (see module)."""
 
     controller: diffrax.AbstractAdaptiveStepSizeController
@@ -116,18 +117,6 @@ class FiniteStepGuard(diffrax.AbstractAdaptiveStepSizeController):
     # static, so that diffrax's cached trace of a solve without its compiled input checks never
     # serves a solve that needs them.
     times_checked: bool = eqx.field(static=True, default=False)
-
-    @property
-    def rtol(self):
-        return self.controller.rtol
-
-    @property
-    def atol(self):
-        return self.controller.atol
-
-    @property
-    def norm(self):  # pyright: ignore
-        return self.controller.norm
 
     def wrap(self, direction):
         return FiniteStepGuard(self.controller.wrap(direction), self.times_checked)

@@ -52,3 +52,22 @@ class ForwardingSolver(diffrax.AbstractSolver):
 
     def func(self, terms, t0, y0, args):
         return self.solver.func(terms, t0, y0, args)
+
+
+class ForwardingAdaptiveController(diffrax.AbstractAdaptiveStepSizeController):
+    """Base of jaxlag's adaptive step-size controller wrappers: the tolerances and norm are the
+    wrapped ``self.controller``'s (diffrax reads them, e.g. for implicit solvers)."""
+
+    controller: AbstractVar[diffrax.AbstractAdaptiveStepSizeController]
+
+    @property
+    def rtol(self):
+        return self.controller.rtol
+
+    @property
+    def atol(self):
+        return self.controller.atol
+
+    @property
+    def norm(self):  # pyright: ignore
+        return self.controller.norm

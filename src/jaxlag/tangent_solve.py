@@ -45,7 +45,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .solver_wrapping import ForwardingSolver
+from .solver_wrapping import ForwardingAdaptiveController, ForwardingSolver
 
 
 def partition_inexact(tree):
@@ -214,23 +214,11 @@ class PrimalStepSizes(diffrax.AbstractStepSizeController):
                                                controller_state)
 
 
-class PrimalAdaptiveStepSizes(diffrax.AbstractAdaptiveStepSizeController):
+class PrimalAdaptiveStepSizes(ForwardingAdaptiveController):
     """An adaptive step-size controller applied to the primal part of ``(y, Y)``: the same steps
     as the primal run (the tangents take no part in the error norm)."""
 
     controller: diffrax.AbstractAdaptiveStepSizeController
-
-    @property
-    def rtol(self):
-        return self.controller.rtol
-
-    @property
-    def atol(self):
-        return self.controller.atol
-
-    @property
-    def norm(self):  # pyright: ignore
-        return self.controller.norm
 
     wrap = PrimalStepSizes.wrap
     init = PrimalStepSizes.init
