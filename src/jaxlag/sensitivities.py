@@ -9,9 +9,11 @@ whatever k is (measured in ``benchmarks/``). :class:`ForwardSensitivities`, the 
   are actually differentiated (``args`` leaves, ``q0``, ``qd0``, times: the "perturbed" ones)
   and how many scalars k they hold;
 * k ≤ ``max_tangents`` (and the sensitivities fit in ``max_bytes``): the simulation is pushed
-  forward (``jax.jvp`` through diffrax's ``ForwardMode``) along the k unit directions at once
-  under ``jax.vmap``; the sensitivities ``S = ∂(outputs)/∂θ`` are kept and the backward pass is
-  one contraction ``θ̄ = Sᵀȳ``. Memory: k times the saved outputs, not the solver's steps;
+  forward along the k unit directions at once: by ``run.push_along`` when the run offers it
+  (``simulate``'s one-loop tangent solve, :mod:`jaxlag.tangent_solve`), else ``jax.jvp``
+  through diffrax's ``ForwardMode`` under ``jax.vmap``; the sensitivities
+  ``S = ∂(outputs)/∂θ`` are kept and the backward pass is one contraction ``θ̄ = Sᵀȳ``.
+  Memory: k times the saved outputs, not the solver's steps;
 * otherwise the ordinary reverse pass of the ``fallback`` adjoint (diffrax's
   ``RecursiveCheckpointAdjoint``) is recorded and replayed.
 
