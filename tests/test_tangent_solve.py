@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 import jaxlag as jl
+from jaxlag.solver_wrapping import ForwardingSolver
 
 jax.config.update("jax_enable_x64", True)
 
@@ -118,8 +119,9 @@ def test_constant_steps_and_baumgarte(solver, tangent_solves):
 
 
 def test_other_inputs_take_the_general_path(tangent_solves):
-    """Differentiated save times, or a closure over a traced value of the caller (with traced
-    inputs, so that the one-step probe decides): the general paths, same answers."""
+    """Differentiated save times, a closure over a traced value of the caller (with traced
+    inputs, so that the probe of the user's functions decides), or a wrapped solver (which may
+    transform the state nonlinearly): the general paths, same answers."""
 
     def by_times(ts, adjoint=None):
         return jnp.sum(jl.simulate(SPHERE, jnp.array([2.0, 0.1]), jnp.zeros(2), ts,
@@ -151,3 +153,23 @@ def test_vmap_of_grad(tangent_solves):
     assert tangent_solves
     for i, g in enumerate(gs):
         np.testing.assert_allclose(batched[i], jax.grad(loss)(g), rtol=1e-12)
+
+
+class _Wrapped(ForwardingSolver, diffrax.AbstractWrappedSolver):
+    """A user's solver wrapper (here a transparent one)."""
+
+    solver: diffrax.AbstractSolver
+
+
+@pytest.mark.parametrize("system", ["constrained", "unconstrained"])
+def test_wrapped_solver_takes_the_general_path(system, tangent_solves):
+    simulated = SPHERE if system == "constrained" else jl.System(sphere_lagrangian)
+
+    def loss(args, adjoint=None):
+        traj = jl.simulate(simulated, jnp.array([2.0, 0.1]), jnp.zeros(2), TS, args=args,
+                           adjoint=adjoint, solver=_Wrapped(diffrax.Tsit5()))
+        return jnp.sum(traj.q[:, 1] ** 2)
+
+    got = jax.grad(loss)(SPHERE_ARGS)
+    assert not tangent_solves
+    _close(got, jax.grad(loss)(SPHERE_ARGS, REVERSE))

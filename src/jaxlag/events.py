@@ -38,7 +38,7 @@ from .constant_mass import with_constant_mass
 from .constraints import holonomic_residual
 from .conventions import wrap_event_function
 from .kkt import accelerations_and_multipliers
-from .stabilization import project_state, wrap_for_projection
+from .stabilization import project_state, stages_for_adjoint, wrap_for_projection
 from .step_once import StepOnce
 
 _NO_EVENT, _END, _RELEASE, _CONTACT, _USER = -1, 0, 1, 2, 3
@@ -194,7 +194,7 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
         (t_s, q, qd, active, done, locks, out_q, out_qd, out_active, filled, count,
          failure) = carry
         segment = _Segment(system, tuple(events), unilateral, active, t_s, locks)
-        this_solver = solver
+        this_solver = stages_for_adjoint(solver, adjoint)  # diffrax does not see it in StepOnce
         if projection is not None:
             this_solver = wrap_for_projection(solver, system, projection, adjoint, active)
         this_solver = StepOnce(this_solver)  # traced once, not once per diffrax body trace

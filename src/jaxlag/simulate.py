@@ -33,7 +33,8 @@ from .sensitivities import (
     captures_traced_values,
     trace_outputs,
 )
-from .stabilization import Baumgarte, Projection, stages_for_forward_mode, wrap_for_projection
+from .stabilization import (Baumgarte, Projection, stages_for_adjoint, stages_for_forward_mode,
+                            wrap_for_projection)
 from .step_once import StepOnce
 from .system import System
 from .trajectory import Trajectory
@@ -172,6 +173,7 @@ def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, save
     system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation
     if check:
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
+    solver = stages_for_adjoint(solver, adjoint)  # diffrax does not see it through StepOnce
     fast, solver, term = _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection,
                                   adjoint)
     solver = StepOnce(solver)
@@ -278,14 +280,19 @@ class _Run(eqx.Module):
     def solves_with_tangents(self, inputs, perturbed) -> bool:
         """Whether :func:`_solve_with_tangents` gives this run's forward sensitivities when the
         inexact input leaves flagged in ``perturbed`` (a list in leaf order) are differentiated:
-        a plain solve (no events), an explicit ODE solver, a guarded controller, states saved
-        as they are, and no perturbed time, save time, controller or progress meter."""
+        a plain solve (no events), an explicit Runge–Kutta solver, a guarded controller, states
+        saved as they are, and no perturbed time, save time, solver, controller or progress
+        meter."""
         (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller, baumgarte,
          projection, events, event) = inputs
         if self.segmented or event is not None or events:
             return False
-        if isinstance(solver, (diffrax.AbstractImplicitSolver, diffrax.AbstractSRK)) or \
-                isinstance(stepsize_controller, diffrax.StepTo):
+        # An explicit Runge–Kutta method (Euler included), not wrapped: its step of the
+        # variational equations is exactly the jvp of its step. (A wrapper may transform the
+        # state nonlinearly; other solvers take the general path.)
+        explicit = (isinstance(solver, (diffrax.AbstractERK, diffrax.Euler))
+                    and not isinstance(solver, diffrax.AbstractWrappedSolver))
+        if not explicit or isinstance(stepsize_controller, diffrax.StepTo):
             return False
         subs = jax.tree.leaves(saveat.subs, is_leaf=lambda x: isinstance(x, diffrax.SubSaveAt))
         if saveat.dense or saveat.solver_state or saveat.made_jump or \

@@ -264,13 +264,26 @@ def _consistent_state(system, q0, qd0, t0, args, newton_steps, tolerance, free_q
     return q, qd
 
 
-def stages_for_forward_mode(solver):
+def stages_for_forward_mode(solver, kind="lax"):
     """``solver`` with its Runge–Kutta stages scanned by ``lax`` (``scan_kind="lax"``), as
     forward-mode differentiation of a step needs (diffrax's default scan is checkpointed for
     reverse mode, which ``jax.jvp`` cannot go through). Other solvers are returned as they are."""
+    # (A wrapper that does not forward ``scan_kind``, e.g. diffrax's HalfSolver, is left as it is.)
     if (isinstance(solver, (diffrax.AbstractRungeKutta, diffrax.AbstractSRK))
-            and solver.scan_kind is None):
-        solver = eqx.tree_at(lambda s: s.scan_kind, solver, "lax", is_leaf=lambda x: x is None)
+            and getattr(solver, "scan_kind", "unknown") is None):
+        solver = eqx.tree_at(lambda s: s.scan_kind, solver, kind, is_leaf=lambda x: x is None)
+    return solver
+
+
+def stages_for_adjoint(solver, adjoint):
+    """The stage scan that diffrax's adjoints set on a Runge–Kutta solver they are handed
+    (``"lax"`` for ``ForwardMode``, ``"bounded"`` for ``RecursiveCheckpointAdjoint``), set here
+    on ``solver`` itself: diffrax finds the solver by an ``isinstance`` check that sees through
+    one wrapper, and jaxlag wraps user solvers twice (projection, :mod:`jaxlag.step_once`)."""
+    if isinstance(adjoint, diffrax.ForwardMode):
+        return stages_for_forward_mode(solver)
+    if isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint):
+        return stages_for_forward_mode(solver, "bounded")
     return solver
 
 
