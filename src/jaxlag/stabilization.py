@@ -277,12 +277,13 @@ def stages_for_forward_mode(solver, kind="lax"):
 
 def stages_for_adjoint(solver, adjoint):
     """The stage scan that diffrax's adjoints set on a Runge–Kutta solver they are handed
-    (``"lax"`` for ``ForwardMode``, ``"bounded"`` for ``RecursiveCheckpointAdjoint``), set here
-    on ``solver`` itself: diffrax finds the solver by an ``isinstance`` check that sees through
-    one wrapper, and jaxlag wraps user solvers twice (projection, :mod:`jaxlag.step_once`)."""
+    (``"lax"`` for ``ForwardMode``, ``"bounded"`` for ``DirectAdjoint``; the others leave it),
+    set here on ``solver`` itself: diffrax finds the solver by an ``isinstance`` check that sees
+    through one wrapper, and jaxlag wraps user solvers twice (projection,
+    :mod:`jaxlag.step_once`)."""
     if isinstance(adjoint, diffrax.ForwardMode):
         return stages_for_forward_mode(solver)
-    if isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint):
+    if isinstance(adjoint, diffrax.DirectAdjoint):
         return stages_for_forward_mode(solver, "bounded")
     return solver
 
