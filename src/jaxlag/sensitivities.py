@@ -105,9 +105,9 @@ def trace_outputs(run: Callable[[Any, Any], Any], inputs: Any, adjoint) -> tuple
 
 def captures_traced_values(probe: Callable[[Any], Any], inputs: Any) -> bool:
     """Whether ``probe(inputs)`` captures traced values other than its inputs: the test of
-    :func:`trace_outputs` on a cheaper function (e.g. one solver step instead of the loop),
-    which must call every user function the run calls. Anything that prevents the analysis
-    counts as "yes"."""
+    :func:`trace_outputs` on a cheaper function (``simulate``: the system's functions evaluated
+    once instead of the solver loop), which must call every user function the run calls.
+    Anything that prevents the analysis counts as "yes"."""
     dynamic, static = eqx.partition(inputs, eqx.is_array)
     try:
         spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)),
