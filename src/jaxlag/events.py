@@ -196,7 +196,7 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
         segment = _Segment(system, tuple(events), unilateral, active, t_s, locks)
         this_solver = stages_for_adjoint(solver, adjoint)  # diffrax does not see it in StepOnce
         if projection is not None:
-            this_solver = wrap_for_projection(solver, system, projection, adjoint, active)
+            this_solver = wrap_for_projection(this_solver, system, projection, adjoint, active)
         this_solver = StepOnce(this_solver)  # traced once, not once per diffrax body trace
         controller = failures.guard(stepsize_controller, times_checked)
         with (compilation.diffrax_checks_done_on_host(failures.skips_diffrax_checks(controller)),

@@ -30,11 +30,11 @@ import numpy as np
 
 from . import compilation
 from . import constraints as _constraints
-from .solver_wrapping import ForwardingSolver
 from .conventions import as_array_leaves, as_jax_array
 from .kkt import deactivate
 from .linalg import solve_psd_least_squares, solve_spd, spd_solver
 from .mechanics import _as_time, mass_matrix, mass_solver
+from .solver_wrapping import ForwardingSolver
 
 
 class Baumgarte(eqx.Module):

@@ -46,6 +46,7 @@ import jax
 import jax.numpy as jnp
 
 from .solver_wrapping import ForwardingAdaptiveController, ForwardingSolver
+from .stabilization import ProjectedSolver
 
 
 def partition_inexact(tree):
@@ -158,8 +159,6 @@ class TangentSolver(ForwardingSolver):
 @eqx.filter_jit
 def _tangent_step(stepper, terms, t0, t1, y0, args, solver_state, made_jump):
     """:meth:`TangentSolver.step`."""
-    from .stabilization import ProjectedSolver
-
     solver = stepper.solver
     if type(solver) is not ProjectedSolver:
         return solver.step(terms, t0, t1, y0, args, solver_state, made_jump)
