@@ -175,6 +175,7 @@ def run_stage(name: str, cache_dir: str | None) -> list[dict]:
         env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
         env["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
         env["JAXLAG_COMPILATION_CACHE"] = "1"
+        env["XDG_CACHE_HOME"] = cache_dir  # jaxlag's saved programs (jaxlag.saved_programs)
     code = PRELUDE + textwrap.dedent(STAGES[name]) + '\nstep("exit")\n'
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))

@@ -244,7 +244,11 @@ def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
             def pushed(p, t):
                 return run.push_along(p, static, t, tuple(axes), structure)
 
-            out_shape = jax.eval_shape(pushed, primals, tangents)[0]
+            shapes_of = getattr(run, "push_along_shapes", None)
+            if shapes_of is None:
+                out_shape = jax.eval_shape(pushed, primals, tangents)[0]
+            else:  # a saved program knows its shapes without a trace
+                out_shape = shapes_of(primals, static, tangents, tuple(axes), structure)[0]
             out_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(out_shape))
             if k * out_bytes <= choice.max_bytes:
                 decided.update(sizes=sizes, outputs=jax.tree.structure(out_shape))

@@ -14,6 +14,7 @@ import numpy as np
 
 from . import compilation
 from . import failures
+from . import saved_programs
 from . import tangent_solve
 from .checks import (
     _is_concrete,
@@ -166,7 +167,12 @@ def _finish(system, fast, projection, solution, ys, t0, t1, q0, qd0, args, max_s
     )
 
 
-@compilation.filter_jit
+def _solve_state(system, q0, qd0, t0, t1, dt0, args, *_):
+    """Where :func:`_solve`'s system functions are fingerprinted (:mod:`jaxlag.saved_programs`)."""
+    return system, q0, qd0, t0, args
+
+
+@saved_programs.saved_program(_solve_state)
 def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat, max_steps,
            adjoint, event, progress_meter, baumgarte, projection, check, tolerance,
            times_checked=False):
@@ -199,7 +205,13 @@ def _user_functions(inputs):
             if getattr(system, name) is not None]
 
 
-@compilation.filter_jit
+def _tangent_solve_state(run, static, primals, tangents, axes, structure):
+    """Where :func:`_solve_with_tangents`'s system functions are fingerprinted."""
+    inputs = eqx.combine(jax.tree.unflatten(structure, jax.tree.leaves(primals)), static)
+    return inputs[0], inputs[1], inputs[2], inputs[3], inputs[7]
+
+
+@saved_programs.saved_program(_tangent_solve_state)
 def _solve_with_tangents(run, static, primals, tangents, axes, structure):
     """The solve of :func:`_solve` (``run``'s, not segmented) and its derivatives along k
     directions in one solver loop (:mod:`jaxlag.tangent_solve`): ``(outputs, tangents,
@@ -310,6 +322,10 @@ class _Run(eqx.Module):
     def push_along(self, primals, static, tangents, axes, structure):
         """``(outputs, tangents, rest)`` along k directions: :func:`_solve_with_tangents`."""
         return _solve_with_tangents(self, static, primals, tangents, axes, structure)
+
+    def push_along_shapes(self, primals, static, tangents, axes, structure):
+        """``jax.eval_shape`` of :meth:`push_along` (a saved program's shapes need no trace)."""
+        return _solve_with_tangents.eval_shape(self, static, primals, tangents, axes, structure)
 
     def __call__(self, inputs, adjoint):
         (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller, baumgarte,
