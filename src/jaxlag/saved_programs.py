@@ -26,8 +26,10 @@ by a *fingerprint* of everything that determines it and, when found, loaded and 
   call's shapes (``jax.make_jaxpr`` of the five functions, a few milliseconds) with the values
   of the constants they close over. A jaxpr is exactly what these functions contribute to the
   program, whatever Python they are written in (globals read, helper functions, closures).
-  A jaxpr whose text names an object by address (a ``custom_jvp`` rule, a host callback) makes
-  the call uncacheable.
+  Functions that a jaxpr holds but prints by name only (custom derivative rules, callbacks)
+  are walked like the inputs, so a user's own rule, and in practice every ``custom_jvp``
+  function, JAX's too (``jax.nn.relu``, ``softplus``, ``jnp.sinc``), makes the call
+  uncacheable; so does a jaxpr whose text names an object by its address.
 
 Anything not in the fingerprint cannot change the program. What it cannot see is a user function
 that behaves differently when traced by the solver than when traced alone (e.g. one that
@@ -222,6 +224,9 @@ class _Fingerprint:
         if isinstance(obj, (jax.Array, np.ndarray, np.generic)):
             tokens.append(("array", np.shape(obj), np.dtype(obj.dtype).str,
                            bool(getattr(obj, "weak_type", False))))
+            return
+        if isinstance(obj, jax.core.ShapedArray):  # in closures of JAX's own rules
+            tokens.append(("aval", obj.shape, np.dtype(obj.dtype).str, obj.weak_type))
             return
         if isinstance(obj, np.dtype):
             tokens.append(("dtype", obj.str))
