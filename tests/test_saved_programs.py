@@ -213,3 +213,21 @@ def test_fingerprint_follows_shapes_options_and_closed_over_arrays():
     weights[0] = 3.0  # the closed-over array's values are part of the program
     keys.add(_key(_solve_arguments(heavy, jnp.array([0.5]))))
     assert len(keys) == len(variants) + 2
+
+
+def test_an_unreadable_file_is_replaced_and_the_switch_turns_saving_off(program_cache,
+                                                                         monkeypatch):
+    system = _pendulum()
+    reference = _simulate(system)
+    (name,) = os.listdir(program_cache)
+    (program_cache / name).write_bytes(b"not a program")
+    _solve._memory.clear()
+    again = _simulate(system)
+    assert dict(saved_programs.statistics) == {"compiled": 2, "saved": 2}
+    np.testing.assert_array_equal(again.q, reference.q)
+    assert (program_cache / name).stat().st_size > 1000  # replaced by the program
+    monkeypatch.setenv("JAXLAG_PROGRAM_CACHE", "0")
+    saved_programs.statistics.clear()
+    _simulate(_pendulum(2.0))
+    assert dict(saved_programs.statistics) == {}
+    assert len(os.listdir(program_cache)) == 1

@@ -20,18 +20,19 @@ environment variable ``JAXLAG_COMPILER_OPTIONS=0`` to compile with XLA's default
 by itself with an XLA that does not know the option: checked once, by one tiny compile).
 
 **Persistent compilation cache.** Unless the user has configured JAX's cache (the
-``JAX_COMPILATION_CACHE_DIR`` variable or ``jax_compilation_cache_dir``), importing jaxlag
-points it at ``$XDG_CACHE_HOME/jaxlag/jax`` (default ``~/.cache/jaxlag/jax``) and caches programs
-of any compile time (JAX's default threshold, 1 s, would skip every program jaxlag compiles now).
-A second run of the same script then loads its programs instead of compiling them.
-``JAXLAG_COMPILATION_CACHE=0`` turns this off. JAX 0.10 does not store programs with host
-callbacks, so jaxlag keeps them out of the programs it runs itself: ``simulate``'s solve and the
-forward sensitivities of ``jax.grad`` check the initial state on the host (before the program),
-diffrax's own checks of times already checked on the host compile without callbacks
-(:func:`diffrax_checks_done_on_host`), and ``jl.fit``'s least-squares program and
-``simulate_batch``'s program return their checks for the host to raise. (A ``jit`` of your own
-is cached if it has no callbacks, e.g. ``jl.simulate(..., throw=False,
-check_initial_state=False, check_times=False)``.)
+``JAX_COMPILATION_CACHE_DIR`` variable or ``jax_compilation_cache_dir``), importing jaxlag points
+it at ``$XDG_CACHE_HOME/jaxlag/jax`` (default ``~/.cache/jaxlag/jax``) and caches programs of any
+compile time (JAX's default threshold, 1 s, would skip every program jaxlag compiles now). A
+second run of the same script then loads its programs instead of compiling them.
+``JAXLAG_COMPILATION_CACHE=0`` turns this off (and jaxlag's saved programs,
+:mod:`jaxlag.saved_programs`, which also spare a second run the tracing). JAX 0.10 does not store
+programs with host callbacks, so jaxlag keeps them out of the programs it runs itself:
+``simulate``'s solve and the forward sensitivities of ``jax.grad`` check the initial state on the
+host (before the program), diffrax's own checks of times already checked on the host compile
+without callbacks (:func:`diffrax_checks_done_on_host`), and ``jl.fit``'s least-squares program
+and ``simulate_batch``'s program return their checks for the host to raise. (A ``jit`` of your own
+is cached if it has no callbacks, e.g. ``jl.simulate(..., throw=False, check_initial_state=False,
+check_times=False)``.)
 """
 
 from __future__ import annotations

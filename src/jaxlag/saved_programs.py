@@ -14,7 +14,8 @@ by a *fingerprint* of everything that determines it and, when found, loaded and 
 
 * the environment: jaxlag's own source files (their bytes), the versions of Python, jax,
   jaxlib, diffrax, equinox, lineax, optimistix and numpy, the backend, its devices and the
-  host CPU, ``XLA_FLAGS``, jaxlag's compiler options and JAX's configuration values;
+  host CPU, the environment variables of these libraries and XLA (``XLA_FLAGS``,
+  ``EQX_ON_ERROR``, ...), jaxlag's compiler options and JAX's configuration values;
 * the program's inputs as its trace would see them: every array by shape, dtype and weak type
   (values are inputs of the program, not part of it); every other value (Python numbers,
   strings, options, diffrax's solver and controller, jaxlag's modules) by type and content,
@@ -83,6 +84,9 @@ TRUSTED_PACKAGES = ("jaxlag", "diffrax", "equinox", "lineax", "optimistix", "jax
 _VERSIONED = ("jax", "jaxlib", "diffrax", "equinox", "lineax", "optimistix", "numpy")
 _SYSTEM_FUNCTIONS = ("lagrangian", "holonomic", "velocity_constraints", "dissipation", "forces")
 _MEMORY_SIZE = 64
+#: Environment variables that can change how a program is traced or compiled (equinox reads
+#: ``EQX_ON_ERROR`` when tracing its checks).
+_READ_VARIABLES = ("XLA_", "JAX_", "EQX_", "JAXLAG_", "DIFFRAX_", "LINEAX_", "OPTIMISTIX_")
 #: Counts in this process (read by tests and benchmarks): programs ``loaded`` from disk,
 #: ``compiled`` (then ``saved`` unless they hold host callbacks) and calls found ``uncacheable``.
 statistics = collections.Counter()
@@ -162,7 +166,9 @@ def _environment() -> str:
     ``XLA_FLAGS``, jaxlag's compiler options."""
     config = sorted((name, repr(value)) for name, value in jax.config.values.items()
                     if isinstance(value, (bool, int, float, str, type(None))))
-    return repr([_static_environment(), config, os.environ.get("XLA_FLAGS"),
+    variables = sorted((name, value) for name, value in os.environ.items()
+                       if name.startswith(_READ_VARIABLES))
+    return repr([_static_environment(), config, variables,
                  sorted(compilation.compiler_options().items())])
 
 
@@ -552,6 +558,7 @@ class SavedProgram:
             box.update(out_tree=out_tree, out_static=out_static)
             return out_leaves
 
+        flat.__name__ = flat.__qualname__ = self._fn.__name__  # JAX names the program so
         options = compilation.compiler_options()
         lowered = jax.jit(flat, compiler_options=options or None).lower(*leaves)
         compiled = lowered.compile()
