@@ -444,21 +444,29 @@ class _Unpickler(pickle.Unpickler):
 # ------------------------------------------------------------------------------- programs
 @dataclasses.dataclass
 class _Entry:
-    """A compiled program: flat arrays in, flat arrays out, and the output's structure."""
+    """A compiled program: flat arrays in, flat arrays out; the output is ``out_tree`` with the
+    arrays at ``positions`` of its leaves and ``template``'s other leaves."""
 
     compiled: Any
     out_tree: Any
-    out_static: Any
+    template: list
+    positions: tuple
     out_shapes: list
 
     def outputs(self, values):
-        return eqx.combine(jax.tree.unflatten(self.out_tree, values), self.out_static)
+        leaves = list(self.template)
+        for position, value in zip(self.positions, values):
+            leaves[position] = value
+        return jax.tree.unflatten(self.out_tree, leaves)
 
-    def __call__(self, leaves):
-        return self.outputs(self.compiled(*leaves))
+    def __call__(self, arrays):
+        return self.outputs(self.compiled(*arrays))
 
     def shapes(self):
         return self.outputs(self.out_shapes)
+
+
+_ARRAYS = (jax.Array, np.ndarray, np.generic)
 
 
 class SavedProgram:
@@ -497,21 +505,24 @@ class SavedProgram:
 
     # -- lookup
     def _entry(self, args):
-        """``(entry, leaves)`` for a cacheable call with concrete values, else None."""
+        """``(entry, arrays)`` for a cacheable call with concrete values, else None."""
         if not enabled() or not compilation.no_transformation_active():
             return None
-        dynamic, static = eqx.partition(args, eqx.is_array)
-        leaves, in_tree = jax.tree.flatten(dynamic)
-        device = jax.devices()[0]
+        leaves, treedef = jax.tree.flatten(args)
+        arrays, signature = [], []
+        device = _default_device()
         for leaf in leaves:
-            if isinstance(leaf, jax.core.Tracer):
-                return None
-            if isinstance(leaf, jax.Array) and leaf.devices() != {device}:
-                return None  # placed elsewhere: jax.jit places the program
-        static_leaves, static_tree = jax.tree.flatten(static)
-        key = (in_tree, static_tree, tuple(static_leaves),
-               tuple((np.shape(x), np.dtype(x.dtype).str, bool(getattr(x, "weak_type", False)))
-                     for x in leaves))
+            if isinstance(leaf, _ARRAYS):
+                if isinstance(leaf, jax.core.Tracer):
+                    return None
+                if isinstance(leaf, jax.Array) and leaf.devices() != {device}:
+                    return None  # placed elsewhere: jax.jit places the program
+                arrays.append(leaf)
+                signature.append((np.shape(leaf), leaf.dtype,
+                                  bool(getattr(leaf, "weak_type", False))))
+            else:
+                signature.append(leaf)  # as jax.jit keys a static value (a tuple is no leaf)
+        key = (treedef, tuple(signature))
         try:
             hash(key)
         except TypeError:
@@ -521,12 +532,12 @@ class SavedProgram:
             if entry is not _UNSET:
                 self._memory.move_to_end(key)
         if entry is _UNSET:
-            entry = self._load_or_compile(args, static, leaves, in_tree)
+            entry = self._load_or_compile(args, leaves, treedef, arrays)
             with self._lock:
                 self._memory[key] = entry
                 while len(self._memory) > _MEMORY_SIZE:
                     self._memory.popitem(last=False)
-        return None if entry is None else (entry, leaves)
+        return None if entry is None else (entry, arrays)
 
     def _fingerprint(self, args) -> tuple[str, list]:
         walk = _Fingerprint()
@@ -538,7 +549,7 @@ class SavedProgram:
         text = repr([_environment(), self.name, walk.tokens, jaxpr])
         return hashlib.sha256(text.encode()).hexdigest(), walk.table
 
-    def _load_or_compile(self, args, static, leaves, in_tree):
+    def _load_or_compile(self, args, leaves, treedef, arrays):
         try:
             key, table = self._fingerprint(args)
         except Uncacheable:
@@ -549,25 +560,34 @@ class SavedProgram:
         if entry is not None:
             statistics["loaded"] += 1
             return entry
+        where = [i for i, leaf in enumerate(leaves) if isinstance(leaf, _ARRAYS)]
         box = {}
 
         def flat(*values):
-            out = self._fn(*eqx.combine(jax.tree.unflatten(in_tree, values), static))
-            out_dynamic, out_static = eqx.partition(out, eqx.is_array)
-            out_leaves, out_tree = jax.tree.flatten(out_dynamic)
-            box.update(out_tree=out_tree, out_static=out_static)
-            return out_leaves
+            merged = list(leaves)
+            for position, value in zip(where, values):
+                merged[position] = value
+            out_leaves, out_tree = jax.tree.flatten(self._fn(*jax.tree.unflatten(treedef, merged)))
+            positions = tuple(i for i, leaf in enumerate(out_leaves) if isinstance(leaf, _ARRAYS))
+            template = [None if i in positions else leaf for i, leaf in enumerate(out_leaves)]
+            box.update(out_tree=out_tree, template=template, positions=positions)
+            return [out_leaves[i] for i in positions]
 
         flat.__name__ = flat.__qualname__ = self._fn.__name__  # JAX names the program so
         options = compilation.compiler_options()
-        lowered = jax.jit(flat, compiler_options=options or None).lower(*leaves)
+        lowered = jax.jit(flat, compiler_options=options or None).lower(*arrays)
         compiled = lowered.compile()
         shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in compiled.out_info]
-        entry = _Entry(compiled, box["out_tree"], box["out_static"], shapes)
+        entry = _Entry(compiled, box["out_tree"], box["template"], box["positions"], shapes)
         statistics["compiled"] += 1
         if _storable(lowered) and _save(path, key, entry, table):
             statistics["saved"] += 1
         return entry
+
+
+@functools.cache
+def _default_device():
+    return jax.devices()[0]
 
 
 def _storable(lowered) -> bool:
@@ -587,7 +607,7 @@ def _save(path: str, key: str, entry: _Entry, table: list) -> bool:
     try:
         executable, in_tree, out_tree = serialize_executable.serialize(entry.compiled)
         buffer = io.BytesIO()
-        _Pickler(buffer, table).dump((entry.out_tree, entry.out_static))
+        _Pickler(buffer, table).dump((entry.out_tree, entry.template, entry.positions))
         shapes = [(s.shape, np.dtype(s.dtype).str) for s in entry.out_shapes]
         payload = pickle.dumps((FORMAT, key, executable, in_tree, out_tree, buffer.getvalue(),
                                 shapes), protocol=pickle.HIGHEST_PROTOCOL)
@@ -615,9 +635,9 @@ def _load(path: str, key: str, table: list) -> _Entry | None:
         form, stored_key, executable, in_tree, out_tree, structure, shapes = pickle.loads(payload)
         if form != FORMAT or stored_key != key:
             return None
-        out_tree_dynamic, out_static = _Unpickler(io.BytesIO(structure), table).load()
+        out_structure, template, positions = _Unpickler(io.BytesIO(structure), table).load()
         compiled = serialize_executable.deserialize_and_load(executable, in_tree, out_tree)
-        return _Entry(compiled, out_tree_dynamic, out_static,
+        return _Entry(compiled, out_structure, template, positions,
                       [jax.ShapeDtypeStruct(shape, np.dtype(dtype)) for shape, dtype in shapes])
     except Exception:  # noqa: BLE001 - unreadable or from another layout: compile again
         return None
