@@ -25,6 +25,8 @@ from jaxlag import simulate as _simulate_module  # noqa: F401 - the module, for 
 
 _solve = sys.modules["jaxlag.simulate"]._solve
 _solve_with_tangents = sys.modules["jaxlag.simulate"]._solve_with_tangents
+_evaluate = sys.modules["jaxlag.trajectory"]._evaluate
+PROGRAMS = (_solve, _solve_with_tangents, _evaluate)
 
 SCRIPT = textwrap.dedent('''
     import json, os, sys
@@ -74,9 +76,10 @@ def test_a_second_process_loads_the_programs_and_a_changed_one_does_not(tmp_path
     reference = _run(tmp_path / "unused", cache="0")  # no cache at all
     assert reference["statistics"] == {}
     first = _run(tmp_path)
-    assert first["statistics"] == {"compiled": 2, "saved": 2}
+    # simulate's solve, traj.multipliers and the tangent solve of jax.grad.
+    assert first["statistics"] == {"compiled": 3, "saved": 3}
     second = _run(tmp_path)
-    assert second["statistics"] == {"loaded": 2}
+    assert second["statistics"] == {"loaded": 3}
     # Bit for bit: the same executables.
     for run in (first, second):
         assert run["q"] == reference["q"]
@@ -84,7 +87,7 @@ def test_a_second_process_loads_the_programs_and_a_changed_one_does_not(tmp_path
         assert run["grad"] == reference["grad"]
     # A different constant in L and a different closed-over array: new programs, new results.
     for changed in (_run(tmp_path, literal="0.5"), _run(tmp_path, scale="1.1")):
-        assert changed["statistics"] == {"compiled": 2, "saved": 2}
+        assert changed["statistics"] == {"compiled": 3, "saved": 3}
         assert changed["q"] != reference["q"] and changed["grad"] != reference["grad"]
 
 
@@ -95,10 +98,10 @@ def program_cache(tmp_path, monkeypatch):
     monkeypatch.setenv("JAXLAG_COMPILATION_CACHE", "1")
     monkeypatch.delenv("JAXLAG_PROGRAM_CACHE", raising=False)
     saved_programs.statistics.clear()
-    for program in (_solve, _solve_with_tangents):
+    for program in PROGRAMS:
         program._memory.clear()
     yield tmp_path / "jaxlag" / "programs"
-    for program in (_solve, _solve_with_tangents):
+    for program in PROGRAMS:
         program._memory.clear()
     saved_programs.statistics.clear()
 
@@ -128,7 +131,18 @@ def test_loaded_program_gives_the_same_trajectory_structure_and_values(program_c
     third = _simulate(system, q0=0.7)
     assert dict(saved_programs.statistics) == {"compiled": 1, "saved": 1, "loaded": 1}
     assert not np.array_equal(third.q, first.q)
-    np.testing.assert_allclose(third.energy, third.energy[0], rtol=1e-9)
+    # Derived quantities: one program per quantity, saved and loaded the same way.
+    energy = first.energy
+    np.testing.assert_allclose(energy, energy[0], rtol=1e-9)
+    _evaluate._memory.clear()
+    np.testing.assert_allclose(third.energy, _energy_by_hand(third), rtol=1e-13)
+    np.testing.assert_array_equal(first.energy, energy)
+    assert dict(saved_programs.statistics) == {"compiled": 2, "saved": 2, "loaded": 2}
+
+
+def _energy_by_hand(trajectory):
+    q, qd = np.asarray(trajectory.q)[:, 0], np.asarray(trajectory.qd)[:, 0]
+    return 0.5 * qd**2 - 9.81 * np.cos(q)
 
 
 def test_calls_the_fingerprint_cannot_describe_run_as_before(program_cache):
@@ -231,3 +245,22 @@ def test_an_unreadable_file_is_replaced_and_the_switch_turns_saving_off(program_
     _simulate(_pendulum(2.0))
     assert dict(saved_programs.statistics) == {}
     assert len(os.listdir(program_cache)) == 1
+
+
+def test_event_runs_are_saved_with_their_conditions_fingerprinted(program_cache):
+    solve_segments = sys.modules["jaxlag.events"].solve_segments
+    solve_segments._memory.clear()
+    system = _pendulum()
+
+    def run(level):  # a new condition function each time: found by its jaxpr, not its identity
+        return jl.simulate(system, jnp.array([0.5]), jnp.zeros(1), jnp.linspace(0.0, 2.0, 11),
+                           args={"g": 9.81}, events=jl.Event(lambda q, qd: q[0] - level))
+
+    first, again, other = run(0.0), run(0.0), run(0.1)
+    assert dict(saved_programs.statistics) == {"compiled": 2, "saved": 2, "loaded": 1}
+    for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(again)):
+        np.testing.assert_array_equal(a, b)
+    assert jax.tree.structure(first) == jax.tree.structure(again)
+    # The pendulum released at q = 0.5 from rest crosses q = 0.1 before q = 0 (a quarter period).
+    assert 0 < float(other.events.time[0]) < float(first.events.time[0])
+    solve_segments._memory.clear()

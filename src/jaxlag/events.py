@@ -33,6 +33,7 @@ import optimistix as optx
 
 from . import compilation
 from . import failures
+from . import saved_programs
 from .checks import initial_activity, validate_initial_state
 from .constant_mass import with_constant_mass
 from .constraints import holonomic_residual
@@ -162,7 +163,14 @@ def _first(mask):
     return jnp.argmax(mask), jnp.any(mask)
 
 
-@compilation.filter_jit
+def _segments_state(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_controller,
+                    max_steps, adjoint, progress_meter, baumgarte, projection, events, *_):
+    """Where :func:`solve_segments`'s system functions and event conditions are fingerprinted
+    (:mod:`jaxlag.saved_programs`)."""
+    return system, q0, qd0, t0, args, events
+
+
+@saved_programs.saved_program(_segments_state)
 def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_controller,
                    max_steps, adjoint, progress_meter, baumgarte, projection, events,
                    max_segments, root_finder, check, tolerance, times_checked=False):

@@ -23,14 +23,14 @@ by a *fingerprint* of everything that determines it and, when found, loaded and 
   above (their code is covered by the versions and the source digest); anything else (a class or
   function of the user's own, other than the system's functions below) makes the call
   *uncacheable*: it runs through ``jax.jit`` as usual;
-* the user's functions (Lagrangian, constraints, dissipation, forces): by their **jaxpr** at the
-  call's shapes (``jax.make_jaxpr`` of the five functions, a few milliseconds) with the values
-  of the constants they close over. A jaxpr is exactly what these functions contribute to the
-  program, whatever Python they are written in (globals read, helper functions, closures).
-  Functions that a jaxpr holds but prints by name only (custom derivative rules, callbacks)
-  are walked like the inputs, so a user's own rule, and in practice every ``custom_jvp``
-  function, JAX's too (``jax.nn.relu``, ``softplus``, ``jnp.sinc``), makes the call
-  uncacheable; so does a jaxpr whose text names an object by its address.
+* the user's functions (Lagrangian, constraints, dissipation, forces, the conditions of
+  ``jl.Event``): by their **jaxpr** at the call's shapes (``jax.make_jaxpr`` of these functions,
+  a few milliseconds) with the values of the constants they close over. A jaxpr is exactly what
+  these functions contribute to the program, whatever Python they are written in (globals read,
+  helper functions, closures). Functions that a jaxpr holds but prints by name only (custom
+  derivative rules, callbacks) are walked like the inputs, so a user's own rule, and in practice
+  every ``custom_jvp`` function, JAX's too (``jax.nn.relu``, ``softplus``, ``jnp.sinc``), makes
+  the call uncacheable; so does a jaxpr whose text names an object by its address.
 
 Anything not in the fingerprint cannot change the program. What it cannot see is a user function
 that behaves differently when traced by the solver than when traced alone (e.g. one that
@@ -207,7 +207,6 @@ class _Fingerprint:
         self.tokens: list = []
         self.table: list = []
         self._seen: dict[int, int] = {}
-        self.systems: list = []
         self.user_functions: set[int] = set()
 
     def _remember(self, obj) -> bool:
@@ -309,17 +308,17 @@ class _Fingerprint:
             raise Uncacheable(f"the module class {kind.__qualname__} of {kind.__module__}")
         self.tokens.append(("module", kind.__module__, kind.__qualname__))
         from .conventions import UserFunction
+        from .events import Event
         from .system import System
 
         if isinstance(module, UserFunction):
-            raise Uncacheable("a user function outside a jl.System")
-        is_system = isinstance(module, System)
-        if is_system:
-            self.systems.append(module)
+            raise Uncacheable("a user function outside a jl.System or jl.Event")
+        covered = (_SYSTEM_FUNCTIONS if isinstance(module, System)
+                   else ("condition",) if isinstance(module, Event) else ())
         for field in dataclasses.fields(module):
             value = getattr(module, field.name, _UNSET)
             self.tokens.append(("field", field.name))
-            if is_system and field.name in _SYSTEM_FUNCTIONS and isinstance(value, UserFunction):
+            if field.name in covered and isinstance(value, UserFunction):
                 # Covered by the jaxpr of the system's functions (see Program._fingerprint).
                 self._remember(value)
                 if value.fn is not None:  # None: a partitioned copy's (arrays apart)
@@ -356,18 +355,26 @@ def _lookup(module: str, qualname: str):
     return obj
 
 
-def _user_function_values(system, q, qd, t, args) -> list:
-    """The system's functions evaluated at one state (what their jaxpr fingerprints)."""
+def _user_function_values(system, q, qd, t, args, events=()) -> list:
+    """The system's functions, and the conditions of ``events`` (:class:`jaxlag.Event`),
+    evaluated at one state (what their jaxpr fingerprints)."""
     state = {"lagrangian": (q, qd), "holonomic": (q,), "velocity_constraints": (q, qd),
              "dissipation": (q, qd), "forces": (q, qd)}
-    return [getattr(system, name)(*values, t=t, args=args) for name, values in state.items()
-            if getattr(system, name) is not None]
+    values = [getattr(system, name)(*values, t=t, args=args) for name, values in state.items()
+              if getattr(system, name) is not None]
+    for event in events:
+        available = {"t": t, "args": args}
+        if "multipliers" in event.condition.keywords:
+            available["multipliers"] = system.multipliers(q, qd, t, args)
+        values.append(event.condition(q, qd, **available))
+    return values
 
 
-def _jaxpr_fingerprint(system, q, qd, t, args) -> tuple[list, set[int]]:
-    """The text of the jaxpr of ``system``'s functions at this state and the digests of the
-    constants they close over; and the identities of the functions it covers."""
-    dynamic, static = eqx.partition((system, q, qd, t, args), eqx.is_array)
+def _jaxpr_fingerprint(system, q, qd, t, args, events=()) -> tuple[list, set[int]]:
+    """The text of the jaxpr of ``system``'s functions (and the event conditions) at this
+    state and the digests of the constants they close over; and the identities of the
+    functions it covers."""
+    dynamic, static = eqx.partition((system, q, qd, t, args, tuple(events)), _array_or_shape)
     closed = jax.make_jaxpr(
         lambda d: _user_function_values(*eqx.combine(d, static)))(dynamic)
     text = str(closed.jaxpr)
@@ -387,7 +394,12 @@ def _jaxpr_fingerprint(system, q, qd, t, args) -> tuple[list, set[int]]:
                           hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest()))
     covered = {id(getattr(system, name).fn) for name in _SYSTEM_FUNCTIONS
                if getattr(system, name) is not None}
+    covered.update(id(event.condition.fn) for event in events)
     return [text, constants, rules.tokens], covered
+
+
+def _array_or_shape(x) -> bool:
+    return eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
 
 
 def _equation_functions(jaxpr):
@@ -473,8 +485,9 @@ class SavedProgram:
     """A jaxlag program (``fn``, a function of pytrees) compiled by :func:`compilation.filter_jit`
     and, for calls with concrete values, saved and loaded as the module docstring describes.
 
-    ``state_of(*args)`` returns ``(system, q, qd, t, args)`` from the call's arguments: the
-    state at which the system's functions are fingerprinted by their jaxpr."""
+    ``state_of(*args)`` returns ``(system, q, qd, t, args)`` or ``(system, q, qd, t, args,
+    events)`` from the call's arguments: the state at which the system's functions (and the
+    events' conditions) are fingerprinted by their jaxpr (arrays or ``jax.ShapeDtypeStruct``)."""
 
     def __init__(self, fn: Callable, state_of: Callable):
         functools.update_wrapper(self, fn)
@@ -542,8 +555,7 @@ class SavedProgram:
     def _fingerprint(self, args) -> tuple[str, list]:
         walk = _Fingerprint()
         walk.visit(args)
-        system, q, qd, t, params = self._state_of(*args)
-        jaxpr, covered = _jaxpr_fingerprint(system, q, qd, t, params)
+        jaxpr, covered = _jaxpr_fingerprint(*self._state_of(*args))
         if not walk.user_functions <= covered:
             raise Uncacheable("functions of a system other than the one simulated")
         text = repr([_environment(), self.name, walk.tokens, jaxpr])

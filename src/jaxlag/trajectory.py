@@ -8,7 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from . import compilation
+from . import saved_programs
 from . import constraints as _constraints
 from . import kkt as _kkt
 from . import mechanics as _mechanics
@@ -45,7 +45,18 @@ _QUANTITIES = {
 }
 
 
-@compilation.filter_jit
+def _evaluated_state(name, system_arrays, system_static, t, q, qd, args, active):
+    """Where :func:`_evaluate`'s system functions are fingerprinted (the first saved state;
+    :mod:`jaxlag.saved_programs`)."""
+    system = eqx.combine(system_arrays, system_static)
+
+    def one(x, shape):  # shapes suffice (no eager indexing: it would compile)
+        return jax.ShapeDtypeStruct(shape, x.dtype, weak_type=getattr(x, "weak_type", False))
+
+    return system, one(q, q.shape[-1:]), one(qd, qd.shape[-1:]), one(t, ()), args
+
+
+@saved_programs.saved_program(_evaluated_state)
 def _evaluate(name: str, system_arrays, system_static, t, q, qd, args, active):
     quantity = _QUANTITIES[name]
 
