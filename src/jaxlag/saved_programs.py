@@ -97,12 +97,33 @@ class Uncacheable(Exception):
 
 
 def enabled() -> bool:
-    """Whether programs are saved and loaded (``JAXLAG_COMPILATION_CACHE`` and
-    ``JAXLAG_PROGRAM_CACHE`` not switched off, and a cache directory can be created)."""
+    """Whether programs are saved and loaded: on the CPU backend (see :func:`_cpu_ready`),
+    with ``JAXLAG_COMPILATION_CACHE`` and ``JAXLAG_PROGRAM_CACHE`` not switched off and a cache
+    directory that can be created."""
     if compilation._switched_off("JAXLAG_COMPILATION_CACHE") or \
             compilation._switched_off("JAXLAG_PROGRAM_CACHE"):
         return False
-    return directory() is not None
+    return _cpu_ready() and directory() is not None
+
+
+@functools.cache
+def _cpu_ready() -> bool:
+    """Whether the default backend is the CPU and its LAPACK kernels are initialized.
+
+    A loaded executable is not lowered, and lowering is where JAX initializes the CPU's LAPACK
+    custom calls (``lax.linalg.initialize_lapack``; ``jax.export`` calls it before running a
+    deserialized module for the same reason): a loaded solver with a Cholesky or LU factorization
+    would otherwise crash the process. JAX has no public API for it, so without it nothing is
+    loaded. Other backends are left to ``jax.jit`` (their custom calls are not checked here)."""
+    if jax.default_backend() != "cpu":
+        return False
+    try:
+        from jax._src.lax import linalg
+
+        linalg.initialize_lapack()
+    except Exception:  # noqa: BLE001 - JAX moved it: do not load executables
+        return False
+    return True
 
 
 def directory() -> str | None:
