@@ -4,8 +4,9 @@ JAX's persistent compilation cache (:mod:`jaxlag.compilation`) saves the XLA com
 program, but every new process still traces and lowers it first: for ``jl.simulate`` of the
 README's first example that is 0.35-0.45 s of tracing and 0.1 s of lowering, for its
 ``jax.grad`` as much again, more than the rest of the script. jaxlag therefore also keeps its
-own, higher-level cache for its two solver programs (``simulate``'s solve and the forward
-sensitivities of ``jax.grad``): when such a program is called with concrete values (no
+own, higher-level cache for its solver programs (``simulate``'s solve, with events and contact
+too, the forward sensitivities of ``jax.grad``) and a trajectory's derived quantities: when such
+a program is called with concrete values (no
 ``jit``/``vmap``/``grad`` trace around the call), the compiled executable is looked up on disk
 by a *fingerprint* of everything that determines it and, when found, loaded and called (about
 0.05 s) instead of being traced, lowered and compiled.
@@ -44,6 +45,10 @@ came from the inputs (the system, its functions) recorded by position and restor
 caller's own objects on loading. Programs with host callbacks are never saved. A file that
 cannot be read is ignored and replaced. Like JAX's cache, the directory holds executable code:
 it must be writable by you alone.
+
+Only on the CPU backend (:func:`_cpu_ready`): a loaded executable skips lowering, where JAX
+initializes the custom calls it needs; on the CPU that is LAPACK, initialized here as
+``jax.export`` does, other backends are not checked and keep ``jax.jit``.
 
 Within one process, the programs are kept by the identity of the call's non-array inputs and
 the shapes of its arrays (as ``jax.jit`` keeps them): the fingerprint is computed once per new
