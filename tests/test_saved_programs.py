@@ -272,3 +272,19 @@ def test_event_runs_are_saved_with_their_conditions_fingerprinted(program_cache)
     # The pendulum released at q = 0.5 from rest crosses q = 0.1 before q = 0 (a quarter period).
     assert 0 < float(other.events.time[0]) < float(first.events.time[0])
     solve_segments._memory.clear()
+
+
+def test_disable_jit_and_debug_nans_bypass_saved_programs(program_cache):
+    system = _pendulum()
+    reference = _simulate(system)
+    saved_programs.statistics.clear()
+    with jax.disable_jit():
+        eager = _simulate(system, solver=diffrax.Euler(),
+                          stepsize_controller=diffrax.ConstantStepSize(), dt0=0.05)
+    with jax.debug_nans(True):
+        checked = _simulate(system)
+    assert dict(saved_programs.statistics) == {}
+    compiled = _simulate(system, solver=diffrax.Euler(),
+                         stepsize_controller=diffrax.ConstantStepSize(), dt0=0.05)
+    np.testing.assert_allclose(eager.q, compiled.q, rtol=1e-12)  # same steps, op by op
+    np.testing.assert_array_equal(checked.q, reference.q)

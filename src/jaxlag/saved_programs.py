@@ -545,7 +545,7 @@ class SavedProgram:
     # -- lookup
     def _entry(self, args):
         """``(entry, arrays)`` for a cacheable call with concrete values, else None."""
-        if not enabled() or not compilation.no_transformation_active():
+        if not enabled() or not compilation.no_transformation_active() or _debugging():
             return None
         leaves, treedef = jax.tree.flatten(args)
         arrays, signature = [], []
@@ -621,6 +621,13 @@ class SavedProgram:
         if _storable(lowered) and _save(path, key, entry, table):
             statistics["saved"] += 1
         return entry
+
+
+def _debugging() -> bool:
+    """``jax.disable_jit()`` or JAX's NaN/Inf checks: ``jax.jit`` honours them, an executable
+    called directly would not."""
+    config = jax.config
+    return bool(config.jax_disable_jit or config.jax_debug_nans or config.jax_debug_infs)
 
 
 @functools.cache
