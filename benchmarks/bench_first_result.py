@@ -4,9 +4,10 @@ Each stage runs in a fresh Python process (pinned to one core), as a user's scri
 import, then each step of the stage, timed by wall clock, with the compilation work of that step
 from ``jax.monitoring`` (tracing ``jaxpr_trace_duration``, lowering
 ``jaxpr_to_mlir_module_duration``, XLA ``backend_compile_duration``, and the number of XLA
-compilations). Every stage is then run twice more with JAX's persistent compilation cache in a
-fresh directory: the first of those fills it, the second ("cached") is what the second run of
-the same script costs.
+compilations). Every stage is then run twice more with JAX's persistent compilation cache and
+jaxlag's saved programs (``jaxlag.saved_programs``) in a fresh directory: the first of those
+fills them, the second ("cached") is what the second run of the same script costs. The fresh
+runs have both switched off (``JAXLAG_COMPILATION_CACHE=0``).
 
 The hand-written reference (a double pendulum's explicit equations of motion under
 ``diffrax.diffeqsolve``, written directly in ``jax.numpy``) is measured the same way, in the same
