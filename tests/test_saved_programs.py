@@ -288,3 +288,27 @@ def test_disable_jit_and_debug_nans_bypass_saved_programs(program_cache):
                          stepsize_controller=diffrax.ConstantStepSize(), dt0=0.05)
     np.testing.assert_allclose(eager.q, compiled.q, rtol=1e-12)  # same steps, op by op
     np.testing.assert_array_equal(checked.q, reference.q)
+
+
+def test_fit_saves_its_least_squares_program_with_the_observation_fingerprinted(program_cache):
+    linearize = sys.modules["jaxlag.fit"]._linearize
+    linearize._memory.clear()
+    system = jl.System(lambda q, qd, args: 0.5 * qd[0] ** 2 + args["g"] * jnp.cos(q[0]))
+    truth = _simulate(system)  # g = 9.81
+    experiment = jl.Experiment(truth.t, truth.q, jnp.array([0.5]), jnp.zeros(1))
+
+    def fitted(observe):
+        return jl.fit(system, {"g": 8.0}, experiment, observe=observe).params["g"]
+
+    saved_programs.statistics.clear()
+    first = fitted(lambda q, qd, args: q)
+    assert saved_programs.statistics["saved"] >= 1
+    before = dict(saved_programs.statistics)
+    linearize._memory.clear()
+    assert fitted(lambda q, qd, args: q) == first  # a new function, the same jaxpr: loaded
+    assert saved_programs.statistics["loaded"] == before.get("loaded", 0) + 1
+    np.testing.assert_allclose(first, 9.81, rtol=1e-8)
+    # Another observation function (another jaxpr): another program.
+    np.testing.assert_allclose(fitted(lambda q, qd, args: 1.0 * q + 0.0 * qd), 9.81, rtol=1e-8)
+    assert saved_programs.statistics["compiled"] == before["compiled"] + 1
+    linearize._memory.clear()

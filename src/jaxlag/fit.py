@@ -41,6 +41,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
 from . import compilation
+from . import saved_programs
 from .conventions import wrap_state_function
 from .sensitivities import ForwardSensitivities
 from .simulate import simulate
@@ -291,7 +292,18 @@ def _residuals_and_jacobian(model, free, data, fixed_states):
     return r, jacobian, flat
 
 
-@compilation.filter_jit
+def _linearize_state(model, free, data, fixed_states):
+    """Where :func:`_linearize`'s user functions (the system's, the observation function) are
+    fingerprinted (:mod:`jaxlag.saved_programs`): shapes of one state and of the parameters."""
+    states, args = jax.eval_shape(
+        lambda f, d, s: (model.states(f, s), {**d["fixed"], **model.physical(f["params"])}),
+        free, data, fixed_states)
+    point = jax.ShapeDtypeStruct(states[0].shape[-1:], states[0].dtype)
+    t = jax.ShapeDtypeStruct((), data["ts_seg"].dtype)
+    return model.system, point, point, t, args, (), (model.observe,)
+
+
+@saved_programs.saved_program(_linearize_state)
 def _linearize(model, free, data, fixed_states):
     flat, unravel = ravel_pytree(free)
 

@@ -25,13 +25,14 @@ by a *fingerprint* of everything that determines it and, when found, loaded and 
   function of the user's own, other than the system's functions below) makes the call
   *uncacheable*: it runs through ``jax.jit`` as usual;
 * the user's functions (Lagrangian, constraints, dissipation, forces, the conditions of
-  ``jl.Event``): by their **jaxpr** at the call's shapes (``jax.make_jaxpr`` of these functions,
-  a few milliseconds) with the values of the constants they close over. A jaxpr is exactly what
-  these functions contribute to the program, whatever Python they are written in (globals read,
-  helper functions, closures). Functions that a jaxpr holds but prints by name only (custom
-  derivative rules, callbacks) are walked like the inputs, so a user's own rule, and in practice
-  every ``custom_jvp`` function, JAX's too (``jax.nn.relu``, ``softplus``, ``jnp.sinc``), makes
-  the call uncacheable; so does a jaxpr whose text names an object by its address.
+  ``jl.Event``, ``jl.fit``'s observation function): by their **jaxpr** at the call's shapes
+  (``jax.make_jaxpr`` of these functions, a few milliseconds) with the values of the constants
+  they close over. A jaxpr is exactly what these functions contribute to the program, whatever
+  Python they are written in (globals read, helper functions, closures). Functions that a jaxpr
+  holds but prints by name only (custom derivative rules, callbacks) are walked like the inputs,
+  so a user's own rule, and in practice every ``custom_jvp`` function, JAX's too
+  (``jax.nn.relu``, ``softplus``, ``jnp.sinc``), makes the call uncacheable; so does a jaxpr
+  whose text names an object by its address.
 
 Anything not in the fingerprint cannot change the program. What it cannot see is a user function
 that behaves differently when traced by the solver than when traced alone (e.g. one that
@@ -335,12 +336,14 @@ class _Fingerprint:
         self.tokens.append(("module", kind.__module__, kind.__qualname__))
         from .conventions import UserFunction
         from .events import Event
+        from .fit import _Model
         from .system import System
 
         if isinstance(module, UserFunction):
-            raise Uncacheable("a user function outside a jl.System or jl.Event")
+            raise Uncacheable("a user function outside a jl.System, jl.Event or fit model")
         covered = (_SYSTEM_FUNCTIONS if isinstance(module, System)
-                   else ("condition",) if isinstance(module, Event) else ())
+                   else ("condition",) if isinstance(module, Event)
+                   else ("observe",) if isinstance(module, _Model) else ())
         for field in dataclasses.fields(module):
             value = getattr(module, field.name, _UNSET)
             self.tokens.append(("field", field.name))
@@ -381,9 +384,10 @@ def _lookup(module: str, qualname: str):
     return obj
 
 
-def _user_function_values(system, q, qd, t, args, events=()) -> list:
-    """The system's functions, and the conditions of ``events`` (:class:`jaxlag.Event`),
-    evaluated at one state (what their jaxpr fingerprints)."""
+def _user_function_values(system, q, qd, t, args, events=(), observers=()) -> list:
+    """The system's functions, the conditions of ``events`` (:class:`jaxlag.Event`) and the
+    ``observers`` (``jl.fit``'s observation function) evaluated at one state (what their jaxpr
+    fingerprints)."""
     state = {"lagrangian": (q, qd), "holonomic": (q,), "velocity_constraints": (q, qd),
              "dissipation": (q, qd), "forces": (q, qd)}
     values = [getattr(system, name)(*values, t=t, args=args) for name, values in state.items()
@@ -393,14 +397,16 @@ def _user_function_values(system, q, qd, t, args, events=()) -> list:
         if "multipliers" in event.condition.keywords:
             available["multipliers"] = system.multipliers(q, qd, t, args)
         values.append(event.condition(q, qd, **available))
+    values.extend(observe(q, qd, t=t, args=args) for observe in observers)
     return values
 
 
-def _jaxpr_fingerprint(system, q, qd, t, args, events=()) -> tuple[list, set[int]]:
-    """The text of the jaxpr of ``system``'s functions (and the event conditions) at this
-    state and the digests of the constants they close over; and the identities of the
+def _jaxpr_fingerprint(system, q, qd, t, args, events=(), observers=()) -> tuple[list, set[int]]:
+    """The text of the jaxpr of ``system``'s functions (and the event conditions, observers)
+    at this state and the digests of the constants they close over; and the identities of the
     functions it covers."""
-    dynamic, static = eqx.partition((system, q, qd, t, args, tuple(events)), _array_or_shape)
+    dynamic, static = eqx.partition((system, q, qd, t, args, tuple(events), tuple(observers)),
+                                    _array_or_shape)
     closed = jax.make_jaxpr(
         lambda d: _user_function_values(*eqx.combine(d, static)))(dynamic)
     text = str(closed.jaxpr)
@@ -421,6 +427,7 @@ def _jaxpr_fingerprint(system, q, qd, t, args, events=()) -> tuple[list, set[int
     covered = {id(getattr(system, name).fn) for name in _SYSTEM_FUNCTIONS
                if getattr(system, name) is not None}
     covered.update(id(event.condition.fn) for event in events)
+    covered.update(id(observe.fn) for observe in observers)
     return [text, constants, rules.tokens], covered
 
 
@@ -511,9 +518,10 @@ class SavedProgram:
     """A jaxlag program (``fn``, a function of pytrees) compiled by :func:`compilation.filter_jit`
     and, for calls with concrete values, saved and loaded as the module docstring describes.
 
-    ``state_of(*args)`` returns ``(system, q, qd, t, args)`` or ``(system, q, qd, t, args,
-    events)`` from the call's arguments: the state at which the system's functions (and the
-    events' conditions) are fingerprinted by their jaxpr (arrays or ``jax.ShapeDtypeStruct``)."""
+    ``state_of(*args)`` returns ``(system, q, qd, t, args[, events[, observers]])`` from the
+    call's arguments: the state at which the system's functions (and the events' conditions,
+    the fit's observation function) are fingerprinted by their jaxpr (arrays or
+    ``jax.ShapeDtypeStruct``)."""
 
     def __init__(self, fn: Callable, state_of: Callable):
         functools.update_wrapper(self, fn)
