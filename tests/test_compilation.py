@@ -166,6 +166,7 @@ def test_persistent_cache_in_the_user_cache_directory(tmp_path):
     env = {k: v for k, v in os.environ.items()
            if k not in ("JAXLAG_COMPILATION_CACHE", "JAX_COMPILATION_CACHE_DIR")}
     env["XDG_CACHE_HOME"] = str(tmp_path)
+    env["JAXLAG_PROGRAM_CACHE"] = "0"  # JAX's cache alone (saved programs: test_saved_programs)
 
     def run(**extra):
         out = subprocess.run([sys.executable, "-c", script], env={**env, **extra},

@@ -202,7 +202,8 @@ def test_float32_runs_constrained_systems(tmp_path):
     out = tmp_path / "q.npy"
     result = subprocess.run([sys.executable, "-c", FLOAT32, str(out)], capture_output=True,
                             text=True, env={"JAX_ENABLE_X64": "0", "PATH": "",
-                                            "JAX_PLATFORMS": "cpu"}, timeout=1800)
+                                            "JAX_PLATFORMS": "cpu",
+                                            "XDG_CACHE_HOME": str(tmp_path)}, timeout=1800)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "jax_enable_x64 is off" in result.stdout
     q32 = np.load(out)

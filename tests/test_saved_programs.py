@@ -6,6 +6,7 @@ jit/vmap, run through jax.jit as before."""
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -85,6 +86,7 @@ def test_a_second_process_loads_the_programs_and_a_changed_one_does_not(tmp_path
     first = _run(tmp_path)
     # simulate's solve, traj.multipliers, the tangent solve of jax.grad, the segmented run.
     assert first["statistics"] == {"compiled": 4, "saved": 4}
+    assert not any("saved_" in name for name in os.listdir(tmp_path / "jaxlag" / "jax"))
     second = _run(tmp_path)
     assert second["statistics"] == {"loaded": 4}
     # Bit for bit: the same executables.
@@ -93,10 +95,64 @@ def test_a_second_process_loads_the_programs_and_a_changed_one_does_not(tmp_path
         assert run["q"] == reference["q"]
         assert run["multipliers"] == reference["multipliers"]
         assert run["grad"] == reference["grad"]
+    # Saved programs removed, JAX's own cache kept: compiled again (JAX's cache does not hold
+    # them, and an executable it loads is never saved: its re-serialized form lacks the machine
+    # code of its fusions, "Function convert_multiply_fusion not found" in the process after).
+    shutil.rmtree(tmp_path / "jaxlag" / "programs")
+    third = _run(tmp_path)
+    assert third["statistics"] == {"compiled": 4, "saved": 4}
+    fourth = _run(tmp_path)
+    assert fourth["statistics"] == {"loaded": 4}
+    for run in (third, fourth):
+        assert run["slide"] == reference["slide"] and run["q"] == reference["q"]
+        assert run["grad"] == reference["grad"]
     # A different constant in L and a different closed-over array: new programs, new results.
     for changed in (_run(tmp_path, literal="0.5"), _run(tmp_path, scale="1.1")):
         assert changed["statistics"] == {"compiled": 4, "saved": 4}
         assert changed["q"] != reference["q"] and changed["grad"] != reference["grad"]
+
+
+GUARD_SCRIPT = textwrap.dedent('''
+    import contextlib, json, os
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+    import jaxlag as jl
+    from jaxlag import saved_programs
+
+    if os.environ["LET_JAX_CACHE_WRITE"] == "1":  # as with a JAX that ignores the override
+        saved_programs._no_jax_cache_writes = contextlib.nullcontext
+    system = jl.System(lambda q, qd: 0.5 * qd @ qd - 9.81 * q[1],
+                       holonomic=lambda q: jnp.array([q @ q - 1.0]))
+    traj = jl.simulate(system, jnp.array([0.6, -0.8]), jnp.zeros(2), jnp.linspace(0, 1, 5))
+    print("RESULT " + json.dumps({"q": np.asarray(traj.q).tolist(),
+                                  "statistics": dict(saved_programs.statistics)}))
+''')
+
+
+def test_an_executable_loaded_by_jax_cache_is_used_but_never_saved(tmp_path):
+    """Should JAX's cache hold a saved program's executable (an older jaxlag wrote it, or a JAX
+    ignores the override), the executable it loads is used, and not saved: re-serialized it
+    would fail in the next process."""
+    def run(let_jax_write):
+        env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path), JAXLAG_COMPILATION_CACHE="1",
+                   LET_JAX_CACHE_WRITE=let_jax_write)
+        env.pop("JAX_COMPILATION_CACHE_DIR", None)
+        out = subprocess.run([sys.executable, "-c", GUARD_SCRIPT], capture_output=True,
+                             text=True, env=env, timeout=600)
+        assert out.returncode == 0, out.stderr[-3000:]
+        return json.loads(out.stdout.split("RESULT ")[-1])
+
+    first = run("1")
+    assert first["statistics"] == {"compiled": 1, "saved": 1}
+    assert any("saved_solve" in name for name in os.listdir(tmp_path / "jaxlag" / "jax"))
+    shutil.rmtree(tmp_path / "jaxlag" / "programs")
+    for _ in range(2):  # nothing saved, so the next process too takes JAX's entry, and runs
+        again = run("0")
+        assert again["statistics"] == {"compiled": 1, "loaded_by_jax_cache": 1}
+        assert again["q"] == first["q"]
+        assert not os.listdir(tmp_path / "jaxlag" / "programs")
 
 
 @pytest.fixture

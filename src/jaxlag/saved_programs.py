@@ -44,7 +44,14 @@ off with JAX's, ``JAXLAG_PROGRAM_CACHE=0`` this one alone.
 behind JAX's own cache) and the output's non-array structure, pickled with every object that
 came from the inputs (the system, its functions) recorded by position and restored to the
 caller's own objects on loading. Programs with host callbacks are never saved. A file that
-cannot be read is ignored and replaced. Like JAX's cache, the directory holds executable code:
+cannot be read is ignored and replaced.
+
+Saved programs are compiled outside JAX's persistent cache (:func:`_compiling_for_saving`): an
+executable that JAX's cache *loaded* serializes without the machine code of its fusions, so a
+later process that loads it fails at run time ("Function convert_multiply_fusion not found",
+JAX 0.10 on the CPU). JAX's cache therefore does not store these programs (they are stored
+here), and an executable it returns anyway (an entry from an older jaxlag) is used but not
+saved. Like JAX's cache, the directory holds executable code:
 it must be writable by you alone.
 
 Only on the CPU backend (:func:`_cpu_ready`): a loaded executable skips lowering, where JAX
@@ -59,6 +66,7 @@ kind of call.
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import enum
 import functools
@@ -619,16 +627,59 @@ class SavedProgram:
             box.update(out_tree=out_tree, template=template, positions=positions)
             return [out_leaves[i] for i in positions]
 
-        flat.__name__ = flat.__qualname__ = self._fn.__name__  # JAX names the program so
+        # JAX names the program after the function: a name of its own, so that no entry of
+        # JAX's cache written for the same function compiled the usual way matches it.
+        flat.__name__ = flat.__qualname__ = "saved_" + self._fn.__name__.lstrip("_")
         options = compilation.compiler_options()
         lowered = jax.jit(flat, compiler_options=options or None).lower(*arrays)
-        compiled = lowered.compile()
+        with _compiling_for_saving() as watch:
+            compiled = lowered.compile()
         shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in compiled.out_info]
         entry = _Entry(compiled, box["out_tree"], box["template"], box["positions"], shapes)
         statistics["compiled"] += 1
-        if _storable(lowered) and _save(path, key, entry, table):
+        if watch.loaded_by_jax:
+            statistics["loaded_by_jax_cache"] += 1  # not saved: see the module docstring
+        elif _storable(lowered) and _save(path, key, entry, table):
             statistics["saved"] += 1
         return entry
+
+
+_watch = threading.local()
+
+
+def _on_jax_event(event: str, **_) -> None:
+    if event == "/jax/compilation_cache/cache_hits" and getattr(_watch, "active", False):
+        _watch.loaded_by_jax = True
+
+
+@functools.cache
+def _listen_to_jax_cache() -> None:
+    jax.monitoring.register_event_listener(_on_jax_event)
+
+
+def _no_jax_cache_writes():
+    """JAX's persistent cache writes no program that compiles faster than its
+    ``jax_persistent_cache_min_compile_time_secs``: infinity, in this thread, for this block."""
+    try:
+        from jax._src import config as jax_config
+
+        return jax_config.persistent_cache_min_compile_time_secs(float("inf"))
+    except (ImportError, AttributeError, TypeError):  # another JAX: the event below still guards
+        return contextlib.nullcontext()
+
+
+@contextlib.contextmanager
+def _compiling_for_saving():
+    """Compile a program to be saved: JAX's persistent cache writes nothing in this block, and
+    ``watch.loaded_by_jax`` says whether JAX's cache returned the executable (JAX records the
+    event ``/jax/compilation_cache/cache_hits`` in the compiling thread)."""
+    _listen_to_jax_cache()
+    _watch.active, _watch.loaded_by_jax = True, False
+    try:
+        with _no_jax_cache_writes():
+            yield _watch
+    finally:
+        _watch.active = False
 
 
 def _debugging() -> bool:
