@@ -121,8 +121,11 @@ GUARD_SCRIPT = textwrap.dedent('''
     import jaxlag as jl
     from jaxlag import saved_programs
 
-    if os.environ["LET_JAX_CACHE_WRITE"] == "1":  # as with a JAX that ignores the override
+    if os.environ["PROTECTION"] in ("old", "none"):  # as with a JAX that ignores the override
         saved_programs._no_jax_cache_writes = contextlib.nullcontext
+    if os.environ["PROTECTION"] == "none":  # as session 8's jaxlag: saves what JAX's cache loads
+        saved_programs._compiling_for_saving = lambda: contextlib.nullcontext(
+            type("Watch", (), {"loaded_by_jax": False}))
     system = jl.System(lambda q, qd: 0.5 * qd @ qd - 9.81 * q[1],
                        holonomic=lambda q: jnp.array([q @ q - 1.0]))
     traj = jl.simulate(system, jnp.array([0.6, -0.8]), jnp.zeros(2), jnp.linspace(0, 1, 5))
@@ -131,28 +134,34 @@ GUARD_SCRIPT = textwrap.dedent('''
 ''')
 
 
-def test_an_executable_loaded_by_jax_cache_is_used_but_never_saved(tmp_path):
+def test_an_executable_loaded_by_jax_cache_is_never_saved_and_a_broken_file_is_replaced(
+        tmp_path):
     """Should JAX's cache hold a saved program's executable (an older jaxlag wrote it, or a JAX
-    ignores the override), the executable it loads is used, and not saved: re-serialized it
-    would fail in the next process."""
-    def run(let_jax_write):
+    ignores the override), the executable it loads is used but not saved: re-serialized, it
+    fails to run in the next process. A file saved so anyway (by session 8's jaxlag) fails its
+    first call: it is deleted and the program compiled, with the same result."""
+    def run(protection):
         env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path), JAXLAG_COMPILATION_CACHE="1",
-                   LET_JAX_CACHE_WRITE=let_jax_write)
+                   PROTECTION=protection)
         env.pop("JAX_COMPILATION_CACHE_DIR", None)
         out = subprocess.run([sys.executable, "-c", GUARD_SCRIPT], capture_output=True,
                              text=True, env=env, timeout=600)
         assert out.returncode == 0, out.stderr[-3000:]
         return json.loads(out.stdout.split("RESULT ")[-1])
 
-    first = run("1")
+    programs = tmp_path / "jaxlag" / "programs"
+    first = run("old")
     assert first["statistics"] == {"compiled": 1, "saved": 1}
     assert any("saved_solve" in name for name in os.listdir(tmp_path / "jaxlag" / "jax"))
-    shutil.rmtree(tmp_path / "jaxlag" / "programs")
-    for _ in range(2):  # nothing saved, so the next process too takes JAX's entry, and runs
-        again = run("0")
-        assert again["statistics"] == {"compiled": 1, "loaded_by_jax_cache": 1}
-        assert again["q"] == first["q"]
-        assert not os.listdir(tmp_path / "jaxlag" / "programs")
+    shutil.rmtree(programs)
+    assert run("none")["statistics"] == {"compiled": 1, "saved": 1}  # a broken file
+    healed = run("full")
+    assert healed["statistics"] == {"loaded": 1, "discarded": 1, "compiled": 1,
+                                    "loaded_by_jax_cache": 1}
+    assert healed["q"] == first["q"] and not os.listdir(programs)
+    again = run("full")  # nothing saved, so the next process too takes JAX's entry, and runs
+    assert again["statistics"] == {"compiled": 1, "loaded_by_jax_cache": 1}
+    assert again["q"] == first["q"] and not os.listdir(programs)
 
 
 @pytest.fixture

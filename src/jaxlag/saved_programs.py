@@ -51,7 +51,8 @@ executable that JAX's cache *loaded* serializes without the machine code of its 
 later process that loads it fails at run time ("Function convert_multiply_fusion not found",
 JAX 0.10 on the CPU). JAX's cache therefore does not store these programs (they are stored
 here), and an executable it returns anyway (an entry from an older jaxlag) is used but not
-saved. Like JAX's cache, the directory holds executable code:
+saved. A loaded executable's first call in a process waits for its result, and one that fails
+to run is deleted and compiled again. Like JAX's cache, the directory holds executable code:
 it must be writable by you alone.
 
 Only on the CPU backend (:func:`_cpu_ready`): a loaded executable skips lowering, where JAX
@@ -505,6 +506,7 @@ class _Entry:
     template: list
     positions: tuple
     out_shapes: list
+    loaded_from: str | None = None  # the file, until its first call in this process has run
 
     def outputs(self, values):
         leaves = list(self.template)
@@ -544,8 +546,27 @@ class SavedProgram:
         found = self._entry(args)
         if found is None:
             return self._jit(*args)
-        entry, leaves = found
-        return entry(leaves)
+        entry, arrays = found
+        if entry.loaded_from is not None:
+            return self._first_call_of_loaded(entry, arrays, args)
+        return entry(arrays)
+
+    def _first_call_of_loaded(self, entry: _Entry, arrays, args):
+        """A loaded executable's first call in this process waits for its result: should it
+        fail to run (a file written by a jaxlag whose executables did not survive
+        serialization), the file is deleted and the program compiled and run as usual."""
+        try:
+            values = jax.block_until_ready(entry.compiled(*arrays))
+        except Exception:  # noqa: BLE001 - the compiled program runs next, and raises its own
+            statistics["discarded"] += 1
+            with contextlib.suppress(OSError):
+                os.unlink(entry.loaded_from)
+            with self._lock:
+                for key in [k for k, v in self._memory.items() if v is entry]:
+                    del self._memory[key]
+            return self(*args)
+        entry.loaded_from = None
+        return entry.outputs(values)
 
     def eval_shape(self, *args):
         """``jax.eval_shape`` of the program; for a saved program its stored output shapes (no
@@ -742,7 +763,8 @@ def _load(path: str, key: str, table: list) -> _Entry | None:
         out_structure, template, positions = _Unpickler(io.BytesIO(structure), table).load()
         compiled = serialize_executable.deserialize_and_load(executable, in_tree, out_tree)
         return _Entry(compiled, out_structure, template, positions,
-                      [jax.ShapeDtypeStruct(shape, np.dtype(dtype)) for shape, dtype in shapes])
+                      [jax.ShapeDtypeStruct(shape, np.dtype(dtype)) for shape, dtype in shapes],
+                      loaded_from=path)
     except Exception:  # noqa: BLE001 - unreadable or from another layout: compile again
         return None
 
