@@ -559,6 +559,7 @@ class SavedProgram:
             values = jax.block_until_ready(entry.compiled(*arrays))
         except Exception:  # noqa: BLE001 - the compiled program runs next, and raises its own
             statistics["discarded"] += 1
+            _discarded.add(entry.loaded_from)  # never loaded again by this process
             with contextlib.suppress(OSError):
                 os.unlink(entry.loaded_from)
             with self._lock:
@@ -748,9 +749,14 @@ def _save(path: str, key: str, entry: _Entry, table: list) -> bool:
         return False
 
 
+_discarded: set = set()  # files whose executable failed to run in this process
+
+
 def _load(path: str, key: str, table: list) -> _Entry | None:
     from jax.experimental import serialize_executable
 
+    if path in _discarded:
+        return None
     try:
         with open(path, "rb") as file:
             payload = file.read()
