@@ -162,6 +162,13 @@ def jit(fn=None, **jitkwargs):
     return jax.jit(fn, **jitkwargs)
 
 
+def user_cache_path(name: str) -> str:
+    """``$XDG_CACHE_HOME/jaxlag/<name>`` (default ``~/.cache/jaxlag/<name>``): where jaxlag's
+    caches live (JAX's persistent cache, :mod:`jaxlag.saved_programs`)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "jaxlag", name)
+
+
 def enable_persistent_cache() -> str | None:
     """Point JAX's persistent compilation cache at jaxlag's user cache directory (see the module
     docstring) unless the user configured one or set ``JAXLAG_COMPILATION_CACHE=0``. Returns the
@@ -170,8 +177,7 @@ def enable_persistent_cache() -> str | None:
         return None
     if os.environ.get("JAX_COMPILATION_CACHE_DIR") or jax.config.jax_compilation_cache_dir:
         return None  # the user's own cache settings stand
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    directory = os.path.join(base, "jaxlag", "jax")
+    directory = user_cache_path("jax")
     try:
         os.makedirs(directory, exist_ok=True)
     except OSError:

@@ -103,7 +103,9 @@ _MEMORY_SIZE = 64
 #: ``EQX_ON_ERROR`` when tracing its checks).
 _READ_VARIABLES = ("XLA_", "JAX_", "EQX_", "JAXLAG_", "DIFFRAX_", "LINEAX_", "OPTIMISTIX_")
 #: Counts in this process (read by tests and benchmarks): programs ``loaded`` from disk,
-#: ``compiled`` (then ``saved`` unless they hold host callbacks) and calls found ``uncacheable``.
+#: ``compiled`` (then ``saved`` unless they hold host callbacks, or JAX's cache returned the
+#: executable: ``loaded_by_jax_cache``), loaded ones ``discarded`` because they failed to run,
+#: and calls found ``uncacheable``.
 statistics = collections.Counter()
 
 
@@ -143,9 +145,7 @@ def _cpu_ready() -> bool:
 
 def directory() -> str | None:
     """The directory of saved programs, created if needed (None if it cannot be)."""
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    path = os.path.join(base, "jaxlag", "programs")
-    return _made(path)
+    return _made(compilation.user_cache_path("programs"))
 
 
 @functools.cache
@@ -357,7 +357,7 @@ class _Fingerprint:
             value = getattr(module, field.name, _UNSET)
             self.tokens.append(("field", field.name))
             if field.name in covered and isinstance(value, UserFunction):
-                # Covered by the jaxpr of the system's functions (see Program._fingerprint).
+                # Covered by the jaxpr of the system's functions (SavedProgram._fingerprint).
                 self._remember(value)
                 if value.fn is not None:  # None: a partitioned copy's (arrays apart)
                     self._remember(value.fn)
