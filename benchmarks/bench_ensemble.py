@@ -156,8 +156,8 @@ def jaxlag_batch(system, nsteps, **kwargs):
 
 def _jaxlag_kernel_only(system, nsteps):
     """jaxlag's Pallas backend without its CPU fallback (to ask whether it lowers for CUDA)."""
-    from jaxlag.ensemble import make_settings
-    from jaxlag.ensemble_entry import _run_impl
+    from jaxlag._batch.ensemble import make_settings
+    from jaxlag._batch.ensemble_entry import _run_impl
 
     settings = make_settings(diffrax.Tsit5(), diffrax.ConstantStepSize(), nsteps, None, False)
 

@@ -51,7 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxlag as jl
-from jaxlag.variational import simulate_variational
+from jaxlag._variational import simulate_variational
 
 from . import bench_constrained as bc
 

@@ -20,7 +20,7 @@ from . import common  # first: pins the core and sets XLA_FLAGS before jax is im
 import jax
 
 import jaxlag as jl
-from jaxlag import kkt
+from jaxlag._mechanics import kkt as kkt
 
 from . import bench_constrained as bc
 from . import bench_unconstrained as bu

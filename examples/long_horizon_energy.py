@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxlag as jl
-from jaxlag.variational import simulate_variational
+from jaxlag._variational import simulate_variational
 
 jax.config.update("jax_enable_x64", True)
 

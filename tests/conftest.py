@@ -2,7 +2,7 @@ import os
 
 # The test suite is dominated by compilation. Every program (the tests' own jits too, not only
 # jaxlag's) is compiled with the CPU options jaxlag uses for its own programs
-# (jaxlag.compilation) and, unless JAXLAG_TEST_OPTIMIZED=1, at XLA's backend optimization level
+# (jaxlag._compile) and, unless JAXLAG_TEST_OPTIMIZED=1, at XLA's backend optimization level
 # 0: the results are IEEE arithmetic either way (only rounding may differ, which every tolerance
 # here allows for), and the suite takes 7 instead of 10 minutes on 2 workers. Optimized code is
 # what `python -m benchmarks` and the examples run; run the suite with JAXLAG_TEST_OPTIMIZED=1
@@ -13,9 +13,10 @@ if "xla_cpu_use_fusion_emitters" not in _flags:
 if os.environ.get("JAXLAG_TEST_OPTIMIZED", "0") != "1" and "xla_backend_optimization_level" not in _flags:
     _flags += " --xla_backend_optimization_level=0"
 os.environ["XLA_FLAGS"] = _flags.strip()
-# No persistent compilation cache: every run compiles from scratch, as on a fresh CI machine.
-os.environ.setdefault("JAXLAG_COMPILATION_CACHE", "0")
 
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+# As equinox's and diffrax's test suites: implicit rank promotion is an error, so that a
+# broadcasting bug in jaxlag (or a test) cannot pass silently.
+jax.config.update("jax_numpy_rank_promotion", "raise")

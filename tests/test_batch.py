@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jaxlag as jl
-from jaxlag.batch import simulate_batch
+from jaxlag._batch.batch import simulate_batch
 
 jax.config.update("jax_enable_x64", True)
 
@@ -121,7 +121,7 @@ _SHARDED_SCRIPT = textwrap.dedent(
     import jax, jax.numpy as jnp, numpy as np
     jax.config.update("jax_enable_x64", True)
     import jaxlag as jl
-    from jaxlag.batch import simulate_batch
+    from jaxlag._batch.batch import simulate_batch
 
     assert jax.device_count() == 4, jax.devices()
     R = 2.0

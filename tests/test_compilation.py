@@ -7,6 +7,7 @@ Counts compilations with ``jax.monitoring`` (no timings: speed is measured by
 from __future__ import annotations
 
 import contextlib
+import threading
 
 import diffrax
 import equinox as eqx
@@ -16,7 +17,8 @@ import numpy as np
 import pytest
 
 import jaxlag as jl
-from jaxlag.solver_wrapping import ForwardingSolver
+from jaxlag import _compile as compilation
+from jaxlag._solver.forwarding import ForwardingSolver
 
 jax.config.update("jax_enable_x64", True)
 
@@ -136,62 +138,7 @@ def test_failure_inside_grad_is_raised(mode):
         jax.block_until_ready(grad(9.81))
 
 
-def test_persistent_cache_in_the_user_cache_directory(tmp_path):
-    """Importing jaxlag points JAX's persistent cache at $XDG_CACHE_HOME/jaxlag/jax (unless the
-    user configured one or opted out); a second process then loads programs from it."""
-    import os
-    import subprocess
-    import sys
-
-    script = (
-        "import jax, jax.numpy as jnp\n"
-        "hits = []\n"
-        "jax.monitoring.register_event_listener(lambda e, **k: hits.append(e) "
-        "if e == '/jax/compilation_cache/cache_hits' else None)\n"
-        "import jaxlag as jl\n"
-        "jax.config.update('jax_enable_x64', True)\n"
-        "s = jl.System(lambda q, qd, args: 0.5 * qd[0] ** 2 - 0.5 * args['k'] * q[0] ** 2)\n"
-        "run = lambda k: jl.simulate(s, jnp.array([1.0]), jnp.zeros(1), jnp.linspace(0, 1, 3), "
-        "args={'k': k}).q\n"
-        "run(1.0).block_until_ready()\n"
-        "jax.grad(lambda k: run(k)[-1, 0])(1.0).block_until_ready()\n"
-        "def user_program(k, ts):\n"
-        "    return jl.simulate(s, jnp.array([1.0]), jnp.zeros(1), ts, args={'k': k}, throw=False,"
-        " check_initial_state=False, check_times=False).q\n"
-        "jax.jit(user_program)(1.0, jnp.linspace(0, 1, 3)).block_until_ready()\n"
-        "jl.simulate_batch(s, jnp.ones((2, 1)), jnp.zeros(1), jnp.linspace(0, 1, 3), "
-        "args={'k': 1.0}).q.block_until_ready()\n"
-        "print(jax.config.jax_compilation_cache_dir, len(hits))\n"
-    )
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("JAXLAG_COMPILATION_CACHE", "JAX_COMPILATION_CACHE_DIR")}
-    env["XDG_CACHE_HOME"] = str(tmp_path)
-    env["JAXLAG_PROGRAM_CACHE"] = "0"  # JAX's cache alone (saved programs: test_saved_programs)
-
-    def run(**extra):
-        out = subprocess.run([sys.executable, "-c", script], env={**env, **extra},
-                             capture_output=True, text=True, timeout=600)
-        assert out.returncode == 0, out.stderr[-2000:]
-        directory, hits = out.stdout.split()
-        return directory, int(hits)
-
-    directory, hits = run()  # (a program compiled twice in one process may already hit)
-    assert directory == str(tmp_path / "jaxlag" / "jax")
-    # The solver programs are stored too (JAX refuses programs with host callbacks): the solve,
-    # the forward sensitivities of jax.grad, a user's jit of simulate without checks, and
-    # simulate_batch (file names start with the program's name).
-    stored = [entry.name for entry in os.scandir(directory)]
-    for program in ("jit__solve-", "jit__solve_with_tangents-", "jit_user_program-",
-                    "jit__run_batch-"):
-        assert any(name.startswith(program) for name in stored), (program, stored)
-    assert run()[1] > hits  # the second process reads what the first wrote
-    assert run(JAXLAG_COMPILATION_CACHE="0")[0] == "None"
-    own = tmp_path / "mine"
-    assert run(JAX_COMPILATION_CACHE_DIR=str(own))[0] == str(own)
-
-
 def test_options_unknown_to_this_xla_fall_back_to_its_defaults(monkeypatch):
-    from jaxlag import compilation
 
     monkeypatch.setattr(compilation, "CPU_COMPILER_OPTIONS", {"xla_no_such_option_here": True})
     compilation._cpu_options_supported.cache_clear()
@@ -201,34 +148,10 @@ def test_options_unknown_to_this_xla_fall_back_to_its_defaults(monkeypatch):
         compilation._cpu_options_supported.cache_clear()
 
 
-def test_diffrax_checks_stay_where_jaxlag_did_not_check_on_the_host():
-    """Save times checked on the host skip diffrax's compiled checks; anything else keeps them:
-    a SaveAt outside [t0, t1] still raises, also after a checked call traced the same check
-    with the same shapes (equinox caches traced checks: the NaN variant must not serve it),
-    and equinox is restored afterwards."""
-    from equinox import _errors
-
-    original = _errors.branched_error_if
-    q0 = jnp.array([0.5])
-    args = {"g": 9.81, "l": 1.0}
-    traj = jl.simulate(PENDULUM, q0, jnp.zeros(1), t0=0.0, t1=1.0, args=args,
-                       saveat=diffrax.SaveAt(ts=jnp.array([0.25, 0.5])))
-    np.testing.assert_allclose(traj.t, [0.25, 0.5])
-    assert _errors.branched_error_if is original
-    with pytest.raises(Exception, match="saveat.ts must lie between t0 and t1"):
-        jax.block_until_ready(jl.simulate(PENDULUM, q0, jnp.zeros(1), t0=0.0, t1=1.0, args=args,
-                                          saveat=diffrax.SaveAt(ts=jnp.array([0.5, 2.0]))).q)
-    assert _errors.branched_error_if is original
-
-
 @pytest.mark.parametrize("helper", ["inline", "jitted"])
 def test_a_check_inside_the_equations_of_motion_still_raises(helper):
-    """The window in which diffrax's input checks compile without callbacks does not reach user
-    code (closed before the solver loop, suspended while diffrax traces the vector field for its
-    shape check): an ``eqx.error_if`` in a user's Lagrangian raises, also inside a user's
-    ``jax.jit`` helper, whose trace JAX caches."""
-    import equinox as eqx
-
+    """An ``eqx.error_if`` in a user's Lagrangian raises, also inside a user's ``jax.jit``
+    helper, whose trace JAX caches."""
     def in_range(q):
         return eqx.error_if(q, q[0] > 0.4, "the angle left the model's range")
 
@@ -244,81 +167,9 @@ def test_a_check_inside_the_equations_of_motion_still_raises(helper):
                                           jnp.linspace(0.0, 1.0, 5), args={"g": 9.81}).q)
 
 
-def test_user_code_traced_in_the_window_keeps_its_checks():
-    """Inside the window, code traced under ``outside_diffrax_prologue`` (jaxlag's vector field:
-    the user's functions) keeps equinox's checks, and a ``jax.jit`` of theirs first traced
-    there still raises later (JAX caches that trace)."""
-    import equinox as eqx
-
-    from jaxlag import compilation
-
-    check = jax.jit(lambda q: eqx.error_if(q, q[0] > 0.4, "out of range"))
-    with compilation.diffrax_checks_done_on_host(True):
-        with compilation.outside_diffrax_prologue():
-            jax.eval_shape(check, jnp.zeros(1))
-    with pytest.raises(Exception, match="out of range"):
-        jax.block_until_ready(check(jnp.ones(1)))
-
-
-def _hundred_before(x):
-    import equinox.internal as eqxi
-
-    for _ in range(100):
-        x = eqxi.prevbefore(x)
-    return x
-
-
-def test_ulp_chains_as_loops_is_bit_for_bit_equinox():
-    """diffrax's t1 − 100 ULPs, computed as one loop inside the window: the same bits for every
-    kind of float (zeros, denormal territory, negative, infinities, NaN), under jit, and the
-    same tangent (identity) under jvp and vmap; equinox is restored afterwards."""
-    import equinox.internal as eqxi
-
-    original = eqxi.prevbefore
-    tiny = np.finfo(np.float64).tiny
-    xs = jnp.array([2.0, 1.0, -3.5, 0.0, -0.0, tiny, 50 * tiny, -tiny, 1e-320, np.inf,
-                    -np.inf, np.nan, np.finfo(np.float64).max, 1e300])
-    want = jax.jit(jax.vmap(_hundred_before))(xs)
-    with jl.compilation.ulp_chains_as_loops():
-        assert eqxi.prevbefore is not original
-        got = jax.jit(jax.vmap(_hundred_before))(xs)
-        primal, tangent = jax.jit(lambda x: jax.jvp(_hundred_before, (x,), (jnp.ones_like(x),)))(xs)
-        hlo = jax.jit(_hundred_before).lower(2.0).as_text()
-    assert eqxi.prevbefore is original
-    np.testing.assert_array_equal(np.asarray(got).view(np.int64), np.asarray(want).view(np.int64))
-    np.testing.assert_array_equal(np.asarray(primal).view(np.int64),
-                                  np.asarray(want).view(np.int64))
-    np.testing.assert_array_equal(tangent, np.ones(xs.shape))
-    assert hlo.count("stablehlo.while") >= 1 and hlo.count("next_after") + hlo.count("compare") < 100
-
-
-def test_solves_are_unchanged_by_ulp_loops():
-    """A diffrax solve first traced inside the window gives the same bits as one traced outside
-    it (shapes used by no other test, so that diffrax's trace cache serves neither), and its
-    program holds no chain of 100 prevbefore steps."""
-    term = diffrax.ODETerm(lambda t, y, args: -args * y)
-    solve = lambda y0, a: diffrax.diffeqsolve(  # noqa: E731
-        term, diffrax.Tsit5(), 0.0, 1.3, 0.1, y0, args=a,
-        saveat=diffrax.SaveAt(ts=jnp.linspace(0.0, 1.3, 7)),
-        stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8)).ys
-    y0 = jnp.array([1.0, 2.0, 0.25])
-    with jl.compilation.ulp_chains_as_loops():
-        hlo = jax.jit(solve).lower(y0, 0.7).as_text()
-        got = jax.jit(solve)(y0, 0.7)
-    want = jax.jit(solve)(y0[None, :], 0.7)
-    np.testing.assert_array_equal(got, want[:, 0, :])
-    assert hlo.count("next_after") < 100
-    assert jax.jit(solve).lower(y0[None, :], 0.7).as_text().count("next_after") >= 100
-
-
 def test_simulations_traced_in_parallel_threads():
-    """jaxlag's tracing windows (host-checked diffrax checks, ULP loops) from several threads at
-    once: every result equals the one traced alone, and equinox is restored afterwards."""
-    import threading
-
-    import equinox.internal as eqxi
-
-    original = eqxi.prevbefore
+    """Simulations traced from several threads at once: every result equals the one traced
+    alone."""
     system = jl.System(lambda q, qd, args: 0.5 * (qd @ qd) - args["g"] * q[1],
                        holonomic=lambda q, args: jnp.array([q @ q - 1.0]))
     q0 = jnp.array([jnp.sin(0.4), -jnp.cos(0.4)])
@@ -334,7 +185,6 @@ def test_simulations_traced_in_parallel_threads():
         thread.start()
     for thread in threads:
         thread.join()
-    assert eqxi.prevbefore is original
     for size in sizes:
         np.testing.assert_allclose(results[size], run(size), rtol=0, atol=1e-13)
 
@@ -360,7 +210,7 @@ class _CountingSolver(ForwardingSolver, diffrax.AbstractWrappedSolver):
 def test_solver_step_traced_once_per_solve(constrained):
     """diffrax traces its loop body three times; jaxlag's solver step (with the equations of
     motion and the projection in it) is traced once for simulate and once for the tangent solve
-    of jax.grad (jaxlag.step_once)."""
+    of jax.grad (jaxlag._solver.step_once)."""
     holonomic = (lambda q, args: jnp.array([q[0] - args["R"]])) if constrained else None
     system = jl.System(lambda q, qd, args: 0.5 * jnp.sum(qd**2) - args["g"] * q[1], holonomic)
     args = {"g": 9.81, "R": 1.0}

@@ -20,8 +20,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxlag as jl
-from jaxlag.constant_mass import ConstantMass, constant_mass, mass_dependence, with_constant_mass
-from jaxlag.kkt import accelerations_and_multipliers
+from jaxlag._mechanics.constant_mass import ConstantMass, constant_mass, mass_dependence, with_constant_mass
+from jaxlag._mechanics.kkt import accelerations_and_multipliers
 
 jax.config.update("jax_enable_x64", True)
 
@@ -283,7 +283,7 @@ def test_concrete_mass_is_one_program_and_survives_traced_closures():
     """The constant M is evaluated by one compiled program (op by op, each operation of the
     Hessian would compile a program of its own); a Lagrangian that closes over a traced value
     (on which M does not depend) still gets a concrete M, by the op-by-op fallback."""
-    from jaxlag.constant_mass import _concrete_mass
+    from jaxlag._mechanics.constant_mass import _concrete_mass
 
     q, qd = chain_state(2)
     from test_batch import CompileCounter

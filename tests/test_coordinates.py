@@ -19,7 +19,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxlag as jl
-from jaxlag import analysis, coordinates
+from jaxlag import analysis
+from jaxlag import coordinates
 
 jax.config.update("jax_enable_x64", True)
 

@@ -74,7 +74,7 @@ def test_host_and_compiled_initial_checks_agree():
     compiled check (under jit, vmap, simulate_batch) takes them in the program. Same flags."""
     import numpy as np
 
-    from jaxlag import checks
+    from jaxlag import _checks as checks
 
     def pendulum(q, qd, args):
         return 0.5 * jnp.sum(qd**2) - args["g"] * q[1]

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import jaxlag as jl
-from jaxlag.sensitivities import call_with_forward_sensitivities
+from jaxlag._adjoint import call_with_forward_sensitivities
 
 jax.config.update("jax_enable_x64", True)
 
@@ -137,7 +137,7 @@ def test_many_differentiated_scalars_fall_back_to_the_checkpointed_adjoint():
 
 
 def test_default_adjoint_is_forward_sensitivities(monkeypatch):
-    module = sys.modules["jaxlag.simulate"]
+    module = sys.modules["jaxlag._simulate"]
     calls = []
 
     def spy(run, inputs, choice, *rest):

@@ -20,12 +20,12 @@ import numpy as np
 import pytest
 
 import jaxlag as jl
-from jaxlag.solver_wrapping import ForwardingSolver
+from jaxlag._solver.forwarding import ForwardingSolver
 
 jax.config.update("jax_enable_x64", True)
 
 REVERSE = diffrax.RecursiveCheckpointAdjoint()
-SIMULATE = sys.modules["jaxlag.simulate"]
+SIMULATE = sys.modules["jaxlag._simulate"]
 
 
 @pytest.fixture

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import jaxlag as jl
-from jaxlag.variational import LagrangianStructure, lagrangian_structure, simulate_variational
+from jaxlag._variational import LagrangianStructure, lagrangian_structure, simulate_variational
 
 jax.config.update("jax_enable_x64", True)
 

@@ -3,60 +3,48 @@
 Write ``L(q, q̇)``; get the mass matrix, forces, constrained accelerations, multipliers and a
 compiled, differentiable diffrax simulation. Sign convention everywhere:
 ``d/dt ∂L/∂q̇ − ∂L/∂q = Jᵀλ + Aᵀμ − ∂R/∂q̇ + Q``, i.e. ``M q̈ = F + Jᵀλ + Aᵀμ``.
+
+Importing jaxlag changes no JAX setting; :func:`enable_compilation_cache` is the opt-in for a
+cross-process compilation cache.
 """
 
-from . import analysis, compilation, contact, coordinates, loads, rotations, systems
-from .batch import batch_sharding, simulate_batch
-from .compilation import compiler_options
-from .ensemble import RK4
-from .conventions import UserFunction
-from .events import Event, EventLog, multiplier_limit
-from .failures import SimulationError
-from .fit import Bounded, Experiment, FitResult, Positive, fit, least_squares_loss
-from .kkt import solve_kkt
-from .sensitivities import ForwardSensitivities
-from .simulate import EquationsOfMotion, simulate
-from .stabilization import Baumgarte, ProjectedSolver, Projection, consistent_initial_state
-from .system import System
-from .trajectory import Trajectory
-from .variational import simulate_variational
-
-__all__ = [
-    "analysis",
-    "compilation",
-    "batch_sharding",
-    "simulate_batch",
-    "contact",
-    "coordinates",
-    "loads",
-    "rotations",
-    "systems",
-    "Baumgarte",
-    "Bounded",
-    "EquationsOfMotion",
-    "Event",
-    "EventLog",
-    "Experiment",
-    "FitResult",
-    "ForwardSensitivities",
-    "Positive",
-    "ProjectedSolver",
-    "Projection",
-    "RK4",
-    "SimulationError",
-    "System",
-    "Trajectory",
-    "UserFunction",
-    "compiler_options",
-    "consistent_initial_state",
-    "fit",
-    "least_squares_loss",
-    "multiplier_limit",
-    "simulate",
-    "simulate_variational",
-    "solve_kkt",
-]
+from . import (
+    analysis as analysis,
+    contact as contact,
+    coordinates as coordinates,
+    experimental as experimental,
+    loads as loads,
+    rotations as rotations,
+    systems as systems,
+)
+from ._adjoint import ForwardSensitivities as ForwardSensitivities
+from ._batch.batch import batch_sharding as batch_sharding, simulate_batch as simulate_batch
+from ._batch.ensemble import RK4 as RK4
+from ._cache import (
+    UnsafeCacheDirectory as UnsafeCacheDirectory,
+    default_cache_directory as default_cache_directory,
+    enable_compilation_cache as enable_compilation_cache,
+)
+from ._compile import compiler_options as compiler_options
+from ._errors import SimulationError as SimulationError
+from ._events import Event as Event, EventLog as EventLog, multiplier_limit as multiplier_limit
+from ._fit import (
+    Bounded as Bounded,
+    Experiment as Experiment,
+    FitResult as FitResult,
+    Positive as Positive,
+    fit as fit,
+    least_squares_loss as least_squares_loss,
+)
+from ._simulate import simulate as simulate
+from ._stabilization import (
+    Baumgarte as Baumgarte,
+    Projection as Projection,
+    consistent_initial_state as consistent_initial_state,
+)
+from ._system import System as System
+from ._trajectory import Trajectory as Trajectory
+from ._variational import simulate_variational as simulate_variational
+from ._vector_field import EquationsOfMotion as EquationsOfMotion
 
 __version__ = "0.1.0"
-
-compilation.enable_persistent_cache()

@@ -29,8 +29,8 @@ from typing import Callable
 
 import jax.numpy as jnp
 
-from .conventions import wrap_configuration_function
-from .coordinates import RigidBody3D, _parameter
+from ._conventions import wrap_configuration_function
+from .coordinates import RigidBody3D, parameter_value
 from .rotations import unskew
 
 __all__ = ["contact_height", "contact_point", "contact_velocity", "rolling_without_slipping"]
@@ -62,7 +62,7 @@ def contact_point(body: RigidBody3D, q, radius, *, shape: str = "disk", axis=(0.
     or sphere of radius ``radius`` (a number or a function of ``args``)."""
     _check(body, shape)
     centre, rotation = body.position(q, t, args)
-    return centre + _offset(centre, rotation, _parameter(radius, args, "radius"), shape, axis)
+    return centre + _offset(centre, rotation, parameter_value(radius, args, "radius"), shape, axis)
 
 
 def contact_velocity(body: RigidBody3D, q, qd, radius, *, shape: str = "disk",
@@ -70,7 +70,7 @@ def contact_velocity(body: RigidBody3D, q, qd, radius, *, shape: str = "disk",
     """``v_P = ẋ_c + ω × (P − x_c)``: velocity (world axes) of the material point at ``P``."""
     _check(body, shape)
     (centre, rotation), (velocity, rate) = body.pose_and_rates(q, qd, t, args)
-    offset = _offset(centre, rotation, _parameter(radius, args, "radius"), shape, axis)
+    offset = _offset(centre, rotation, parameter_value(radius, args, "radius"), shape, axis)
     return velocity + jnp.cross(unskew(rate @ rotation.T), offset)
 
 

@@ -34,7 +34,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .conventions import UserFunction, wrap_configuration_function
+from ._conventions import UserFunction, wrap_configuration_function
 from .rotations import unskew
 
 __all__ = [
@@ -83,7 +83,7 @@ def planar_chain(angles, lengths, origin=(0.0, 0.0)):
 
 
 # ----------------------------------------------------------------------------- helpers
-def _parameter(value, args, name):
+def parameter_value(value, args, name):
     """A mass, inertia or ``g``: a number/array, or a function of ``args``."""
     if callable(value):
         value = value(args)
@@ -138,14 +138,14 @@ class RigidBody2D(eqx.Module):
                 "A RigidBody2D pose function must return (x_c, y_c, angle), shape (3,); it "
                 f"returned shape {x.shape}."
             )
-        m = _parameter(self.mass, args, "mass")
-        inertia = _parameter(self.inertia, args, "inertia")
+        m = parameter_value(self.mass, args, "mass")
+        inertia = parameter_value(self.inertia, args, "inertia")
         return 0.5 * m * (v[0] ** 2 + v[1] ** 2) + 0.5 * inertia * v[2] ** 2
 
     def height(self, q, t, args):
         """``m y_c``: the body's mass times the height of its centre of mass."""
         x = jnp.asarray(self.pose(q, t=t, args=args))
-        return _parameter(self.mass, args, "mass") * x[1]
+        return parameter_value(self.mass, args, "mass") * x[1]
 
     def angular_velocity(self, q, qd, t=0.0, args=None):
         """``φ̇`` (a scalar: the angular velocity about the out-of-plane axis)."""
@@ -254,11 +254,11 @@ class RigidBody3D(eqx.Module):
     # ----------------------------------------------------------------- dynamics
     def inertia_tensor(self, args=None):
         """The inertia tensor ``I`` (3, 3) in body axes about the centre of mass."""
-        return _inertia_tensor(_parameter(self.inertia, args, "inertia"))
+        return _inertia_tensor(parameter_value(self.inertia, args, "inertia"))
 
     def kinetic_energy(self, q, qd, t, args):
         (_, _), (v, rate) = self.pose_and_rates(q, qd, t, args)
-        m = _parameter(self.mass, args, "mass")
+        m = parameter_value(self.mass, args, "mass")
         inertia = self.inertia_tensor(args)
         second_moment = 0.5 * jnp.trace(inertia) * jnp.eye(3, dtype=inertia.dtype) - inertia
         return 0.5 * m * (v @ v) + 0.5 * jnp.sum((rate @ second_moment) * rate)
@@ -266,12 +266,12 @@ class RigidBody3D(eqx.Module):
     def height(self, q, t, args):
         """``m z_c``: the body's mass times the height of its centre of mass."""
         x, _ = self._pose(q, t, args)
-        return _parameter(self.mass, args, "mass") * x[2]
+        return parameter_value(self.mass, args, "mass") * x[2]
 
     def momentum(self, q, qd, t=0.0, args=None):
         """Linear momentum ``m ẋ_c`` (world axes)."""
         (_, _), (v, _) = self.pose_and_rates(q, qd, t, args)
-        return _parameter(self.mass, args, "mass") * v
+        return parameter_value(self.mass, args, "mass") * v
 
     def angular_momentum(self, q, qd, t=0.0, args=None, *, about=None):
         """Angular momentum in world axes, ``R I ω_body`` about the centre of mass, plus
@@ -280,7 +280,7 @@ class RigidBody3D(eqx.Module):
         spin = rotation @ (self.inertia_tensor(args) @ unskew(rotation.T @ rate))
         if about is None:
             return spin
-        m = _parameter(self.mass, args, "mass")
+        m = parameter_value(self.mass, args, "mass")
         return spin + jnp.cross(x - jnp.asarray(about, x.dtype), m * v)
 
 
@@ -319,7 +319,7 @@ def kinetic_energy_from_positions(
         if fn is not None:
             _, v = _velocity(fn, q, qd, t, args)
             v = _as_points(v, "position map")
-            m = _check_masses(_parameter(masses, args, "masses"), v.shape[0])
+            m = _check_masses(parameter_value(masses, args, "masses"), v.shape[0])
             total = total + 0.5 * jnp.sum(m * jnp.sum(v**2, axis=-1))
         for b in bodies:
             total = total + b.kinetic_energy(q, qd, t, args)
@@ -364,7 +364,7 @@ def lagrangian_from_positions(
         if fn is not None:
             x, v = _velocity(fn, q, qd, t, args)  # one jvp gives positions and velocities
             x, v = _as_points(x, "position map"), _as_points(v, "position map")
-            m = _check_masses(_parameter(masses, args, "masses"), x.shape[0])
+            m = _check_masses(parameter_value(masses, args, "masses"), x.shape[0])
             value = value + 0.5 * jnp.sum(m * jnp.sum(v**2, axis=-1))
             height = height + jnp.sum(m * x[:, -1])
         for b in bodies:
@@ -377,7 +377,7 @@ def lagrangian_from_positions(
                 raise ValueError(f"The potential must return a scalar; it returned shape {pot.shape}.")
             value = value - pot
         if gravity is not None:
-            value = value - _parameter(gravity, args, "gravity") * height
+            value = value - parameter_value(gravity, args, "gravity") * height
         return value
 
     return lagrangian

@@ -29,7 +29,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .conventions import UserFunction, wrap_configuration_function, wrap_state_function
+from ._conventions import UserFunction, wrap_configuration_function, wrap_state_function
 from .coordinates import RigidBody2D, RigidBody3D
 
 __all__ = ["Force", "Torque", "generalized_forces", "point_map"]

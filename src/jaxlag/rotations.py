@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .conventions import wrap_configuration_function
+from ._conventions import wrap_configuration_function
 
 __all__ = [
     "angular_velocity",

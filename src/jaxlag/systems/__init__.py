@@ -36,9 +36,9 @@ model                                   forms / coordinates
 """
 
 from ._common import default_args
-from .bicycle import bicycle_eigenvalues, bicycle_upright_state, whipple_bicycle
-from .fields import charged_particle, kepler
-from .pendulums import (
+from ._bicycle import bicycle_eigenvalues, bicycle_upright_state, whipple_bicycle
+from ._fields import charged_particle, kepler
+from ._pendulums import (
     cart_pole,
     double_pendulum,
     free_chain,
@@ -46,9 +46,9 @@ from .pendulums import (
     simple_pendulum,
     spherical_pendulum,
 )
-from .rigid import ball_on_turntable, gyroscope, heavy_top, rolling_disk_3d, torque_free_body
-from .rolling import disk_on_incline, knife_edge, rolling_disk
-from .surfaces import (
+from ._rigid import ball_on_turntable, gyroscope, heavy_top, rolling_disk_3d, torque_free_body
+from ._rolling import disk_on_incline, knife_edge, rolling_disk
+from ._surfaces import (
     bead_on_hoop,
     bead_on_rotating_parabola,
     particle_on_cone,

@@ -1,0 +1,256 @@
+"""``simulate_batch(..., method="ensemble")``: options, checks and the compiled call.
+
+Turns the keywords of :func:`~jaxlag.simulate` into :class:`~jaxlag.ensemble.EnsembleSettings`,
+rejects what the ensemble loop does not do (with a pointer to ``method="vmap"``), computes the
+constant-step grid on the host and runs :func:`~jaxlag.ensemble.integrate_ensemble` (or the Pallas
+kernel) under one ``jax.jit``.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import _compile as compilation
+from .._misc import is_concrete
+from .ensemble import (
+    as_member_times,
+    check_finished,
+    constant_grid,
+    ensemble_problem,
+    integrate_ensemble,
+    make_settings,
+)
+from .._stabilization import Projection
+from .pallas import integrate_pallas
+from .._trajectory import Trajectory
+
+_VMAP = "Use simulate_batch(..., method='vmap') (jax.vmap of jl.simulate), which supports it."
+_DEFAULTS = dict(
+    t0=None, t1=None, solver=None, stepsize_controller=None, dt0=None, saveat=None,
+    max_steps=2**16, adjoint=None, event=None, throw=True, progress_meter=None, baumgarte=None,
+    projection="auto", check_initial_state=True, constraint_tolerance=1e-8, events=(),
+)
+
+
+def _options(system, kwargs) -> dict:
+    unknown = set(kwargs) - set(_DEFAULTS) - {"max_segments", "event_root_finder"}
+    if unknown:
+        raise TypeError(f"simulate_batch got unexpected keyword(s) {sorted(unknown)}.")
+    options = {**_DEFAULTS, **kwargs}
+    if options["solver"] is None:
+        options["solver"] = diffrax.Tsit5()
+    if options["stepsize_controller"] is None:
+        options["stepsize_controller"] = diffrax.PIDController(rtol=1e-10, atol=1e-10)
+    return options
+
+
+def unsupported(system, ts, kwargs) -> str | None:
+    """Why ``method="ensemble"`` cannot run these options, or ``None``."""
+    options = _options(system, kwargs)
+    if system.unilateral:
+        return ("unilateral constraints switch per member at events; the ensemble integrator has "
+                "no event handling. " + _VMAP)
+    events = options["events"]
+    if (isinstance(events, (tuple, list)) and len(events)) or not isinstance(events, (tuple, list)):
+        return "jl.Event conditions are not supported by the ensemble integrator. " + _VMAP
+    if options["event"] is not None:
+        return "diffrax events are not supported by the ensemble integrator. " + _VMAP
+    if options["progress_meter"] is not None and not isinstance(options["progress_meter"],
+                                                                 diffrax.NoProgressMeter):
+        return "progress meters are not supported by the ensemble integrator. " + _VMAP
+    saveat = options["saveat"]
+    if saveat is not None:
+        sub = saveat.subs
+        plain_t1 = (sub.t1 and not sub.t0 and sub.ts is None and not sub.steps
+                    and not saveat.dense and sub.fn is diffrax._saveat.save_y)
+        plain_ts = (not sub.t0 and not sub.t1 and sub.ts is not None and not sub.steps
+                    and not saveat.dense and sub.fn is diffrax._saveat.save_y)
+        if not (plain_t1 or plain_ts):
+            return ("the ensemble integrator saves at given times only: pass ts, or "
+                    "saveat=diffrax.SaveAt(t1=True) / SaveAt(ts=...). " + _VMAP)
+    try:
+        make_settings(options["solver"], options["stepsize_controller"], options["max_steps"],
+                      options["adjoint"], options["throw"])
+    except (TypeError, ValueError) as error:
+        return str(error)
+    if isinstance(options["stepsize_controller"], diffrax.ConstantStepSize):
+        if options["dt0"] is None:
+            return "diffrax.ConstantStepSize() needs dt0."
+        times = _save_times(ts, options)
+        if times is None or not is_concrete((times, options["dt0"])):
+            return ("constant steps need concrete save times and dt0 (the number of steps is "
+                    "static); pass them as numbers, not traced values. " + _VMAP)
+    return None
+
+
+def ensemble_by_default(system, ts, kwargs) -> bool:
+    """``method="auto"``: the ensemble loop only on an accelerator, for constant steps on a grid
+    that divides the save intervals (so that the result equals the vmap one to rounding)."""
+    if jax.default_backend() == "cpu":
+        return False
+    try:
+        if unsupported(system, ts, kwargs) is not None:
+            return False
+    except Exception:  # noqa: BLE001 - auto never fails where vmap would run
+        return False
+    options = _options(system, kwargs)
+    if not isinstance(options["stepsize_controller"], diffrax.ConstantStepSize):
+        return False
+    times = np.atleast_2d(np.asarray(_save_times(ts, options), dtype=float))
+    ratio = np.diff(times, axis=1) / float(options["dt0"])
+    return bool(np.all(np.abs(ratio - np.round(ratio)) <= 1e-9 * np.maximum(1.0, ratio)))
+
+
+def _save_times(ts, options):
+    """The save times including the start (T ≥ 2), or ``None`` when not given."""
+    saveat = options["saveat"]
+    if ts is not None:
+        return ts
+    if saveat is not None and saveat.subs.ts is not None:
+        if options["t0"] is None:
+            return None
+        return jnp.concatenate([jnp.atleast_1d(jnp.asarray(options["t0"])),
+                                jnp.asarray(saveat.subs.ts)])
+    if options["t0"] is None or options["t1"] is None:
+        return None
+    if is_concrete((options["t0"], options["t1"])):  # stays on the host, also under jit
+        return np.array([float(options["t0"]), float(options["t1"])])
+    return jnp.stack([jnp.asarray(options["t0"], float), jnp.asarray(options["t1"], float)])
+
+
+def _broadcast_members(tree, batch):
+    def expand(x):
+        if eqx.is_array(x):
+            x = jnp.asarray(x)
+            return jnp.broadcast_to(x, (batch,) + x.shape)
+        return x
+
+    return jax.tree.map(expand, tree)
+
+
+def _run_impl(system, q0, qd0, ts, batched_args, shared_args, settings, dt0, grid, baumgarte,
+         projection, check, tolerance, keep_first, out_sharding, backend):
+    field, y0 = ensemble_problem(system, q0, qd0, ts, batched_args, shared_args, baumgarte,
+                                 projection, check, tolerance)
+    if backend in ("pallas", "pallas-interpret"):
+        saved, stats, done = integrate_pallas(field, settings, ts, y0, grid,
+                                              interpret=backend == "pallas-interpret")
+    else:
+        saved, stats, done = integrate_ensemble(field, settings, ts, y0, dt0, grid)
+    q, qd = (jnp.moveaxis(x, 0, 1) for x in saved)  # (B, T-1, n)
+    if keep_first:
+        q = jnp.concatenate([y0[0][:, None], q], axis=1)
+        qd = jnp.concatenate([y0[1][:, None], qd], axis=1)
+        t = ts
+    else:
+        t = ts[:, 1:]
+    q = check_finished(done, q, settings)
+    batch = q.shape[0]
+    stats = {**stats, "max_steps": jnp.full((batch,), settings.max_steps, jnp.int32)}
+    result = jax.vmap(lambda d: diffrax.RESULTS.where(d, diffrax.RESULTS.successful,
+                                                      diffrax.RESULTS.max_steps_reached))(done)
+    args = _broadcast_members(shared_args, batch)
+    args = eqx.combine(batched_args, args)
+    system_arrays, system_static = eqx.partition(system, eqx.is_array)
+    system_arrays = _broadcast_members(system_arrays, batch)
+    out = Trajectory(t, q, qd, args, stats, result, system_arrays, active=None, events=None,
+                     failure=None, system_static=system_static)
+    if out_sharding is not None:
+        out = jax.tree.map(
+            lambda x: jax.lax.with_sharding_constraint(x, out_sharding)
+            if isinstance(x, jax.Array) and x.ndim >= 1 else x, out)
+    return out
+
+
+_run = compilation.filter_jit(_run_impl)
+
+
+def _kernel_lowers(call) -> Exception | None:
+    """Compile the Pallas variant from abstract shapes: ``None`` if it lowers, else the error.
+
+    Done ahead of the real call so that a failure is caught here even when ``simulate_batch`` is
+    traced inside the caller's own ``jax.jit`` (whose compilation would otherwise fail later).
+    """
+    dynamic, static = eqx.partition(call, eqx.is_array)
+    spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)), dynamic)
+    try:
+        compilation.jit(lambda d: _run_impl(*eqx.combine(d, static))).lower(spec).compile()
+    except Exception as error:  # noqa: BLE001 - any lowering failure: the XLA loop is exact too
+        return error
+    return None
+
+
+def run_ensemble(system, q0, qd0, ts, batched_args, shared_args, batch, kwargs, out_sharding,
+                 backend) -> Trajectory:
+    """``simulate_batch(..., method="ensemble")`` after the batch inputs have been prepared."""
+    options = _options(system, kwargs)
+    settings = make_settings(options["solver"], options["stepsize_controller"],
+                             options["max_steps"], options["adjoint"], options["throw"])
+    reason = unsupported(system, ts, kwargs)
+    if reason is not None:
+        raise ValueError("simulate_batch(method='ensemble'): " + reason)
+    keep_first = ts is not None  # simulate saves at ts[0]; with t0/t1/saveat only what saveat asks
+    times = _save_times(ts, options)
+    if times is None:
+        raise ValueError("Give save times `ts`, or `t0` and `t1` (with saveat=SaveAt(t1=True)).")
+    host = None
+    if is_concrete(times):  # checked and gridded on the host (also under a caller's jit)
+        host = np.asarray(times, dtype=np.float64)
+        host = np.broadcast_to(host, (batch,) + host.shape) if host.ndim == 1 else host
+        if host.ndim == 2 and not np.all(np.diff(host, axis=1) > 0):
+            raise ValueError("ts must be strictly increasing (for every member).")
+    times = as_member_times(times, batch, q0.dtype)
+    # A weakly typed state (jnp.full(..., 0.5)) would compile a second program for the same shapes.
+    q0, qd0 = (x.astype(x.dtype) if getattr(x, "weak_type", False) else x for x in (q0, qd0))
+    if q0.ndim == 1:
+        q0 = jnp.broadcast_to(q0, (batch,) + q0.shape)
+    if qd0.ndim == 1:
+        qd0 = jnp.broadcast_to(qd0, (batch,) + qd0.shape)
+    projection = options["projection"]
+    if isinstance(projection, str):
+        if projection != "auto":
+            raise ValueError(f"projection must be a jl.Projection, None or 'auto'; got {projection!r}.")
+        projection = Projection() if system.is_constrained else None
+    if not system.is_constrained:
+        projection = None
+    grid = None
+    if not settings.adaptive:
+        m, inner = constant_grid(host, float(options["dt0"]))
+        # The 4th entry: every member has the same save times (the lane-wise Pallas kernel).
+        grid = (jnp.asarray(m, jnp.int32), inner, bool(np.all(m == inner)),
+                bool(np.all(host == host[:1])))
+        if int(m.sum(axis=1).max()) > settings.max_steps:
+            raise ValueError(
+                f"Constant steps of dt0={options['dt0']} need {int(m.sum(axis=1).max())} steps, more "
+                f"than max_steps={settings.max_steps}."
+            )
+    if backend not in ("auto", "xla", "pallas", "pallas-interpret"):
+        raise ValueError(f"backend must be 'auto', 'xla', 'pallas' or 'pallas-interpret'; got "
+                         f"{backend!r}.")
+    if backend == "auto":
+        backend = "xla"
+    if backend.startswith("pallas") and settings.adaptive:
+        raise ValueError("backend='pallas' integrates constant steps only "
+                         "(diffrax.ConstantStepSize()); use backend='xla' for adaptive steps.")
+    dt0 = options["dt0"]
+    dt0 = None if dt0 is None else jnp.asarray(dt0, q0.dtype)
+    call = (system, q0, qd0, times, batched_args, shared_args, settings, dt0, grid,
+            options["baumgarte"], projection, bool(options["check_initial_state"]),
+            options["constraint_tolerance"], keep_first, out_sharding)
+    if backend == "pallas":
+        error = _kernel_lowers((*call, backend))
+        if error is not None:
+            message = str(error).splitlines()[0][:200] if str(error) else ""
+            warnings.warn(
+                f"simulate_batch(method='ensemble', backend='pallas'): the kernel did not lower "
+                f"({type(error).__name__}: {message}); using the XLA loop.",
+                RuntimeWarning, stacklevel=3,
+            )
+            backend = "xla"
+    return _run(*call, backend)

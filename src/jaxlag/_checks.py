@@ -1,0 +1,366 @@
+"""Run-time checks of the initial state: loud, specific errors instead of silent NaNs.
+
+When the inputs are concrete (``simulate`` called outside ``jit``/``vmap``) the checks run
+eagerly and raise ``ValueError`` with the numbers and the offending constraints. Under a
+transformation they become ``eqx.error_if`` checks compiled into the program, so bad input
+still stops the computation.
+"""
+
+from __future__ import annotations
+
+import functools as ft
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _compile as compilation
+from ._errors import Report, batch_prefix, failed_members, member, raise_from_program
+from ._mechanics import constraints as _constraints
+from ._mechanics.kkt import accelerations_and_multipliers
+from ._mechanics.lagrangian import mass_matrix
+from ._misc import is_concrete
+from ._tolerances import (
+    CONSTRAINT_RCOND,
+    MASS_RCOND,
+    default_constraint_tolerance,
+    default_solver_tolerance,
+    rcond,
+)
+
+def initial_activity(system, q, t, args, tolerance):
+    """Holonomic activity mask at the start: unilateral constraints act only where ``f_i ≈ 0``."""
+    if system.holonomic is None:
+        return jnp.zeros((0,), bool)
+    f = _constraints.holonomic_residual(system, q, t, args)
+    active = jnp.ones(f.shape, bool)
+    for i in system.unilateral:
+        active = active.at[i].set(jnp.abs(f[i]) <= tolerance)
+    return active
+
+
+@compilation.filter_jit
+def _diagnostics(system, q, qd, t, args, tolerance, spectra=True):
+    """``(values, failures)`` at the initial state, in one compiled call (one host transfer).
+    ``spectra=False``: without the eigenvalues of ``M`` and the singular values of the
+    constraint rows, and without the failures that need them (``None``): for
+    :func:`_diagnostics_on_host`, which computes those with NumPy."""
+    values = _diagnostic_values(system, q, qd, t, args, tolerance, spectra)
+    return values, (_failures(values, system.least_squares, tolerance) if spectra else None)
+
+
+def _diagnostics_on_host(system, q, qd, t, args, tolerance):
+    """``(values, failures)`` of :func:`_diagnostics` as host (NumPy) values, the spectra
+    computed by NumPy: the program then has no LAPACK call, whose first lowering in a process
+    costs ~0.1 s (JAX registers its kernels), more than the whole check. ``None`` if the
+    values are traced (a user function closing over a traced value)."""
+    values, _ = _diagnostics(system, q, qd, t, args, tolerance, False)
+    if not is_concrete(values):
+        return None
+    values = jax.device_get(values)
+    rows = values["rows"]
+    values["eigenvalues"] = np.linalg.eigvalsh(values["mass"])
+    values["singular_values"] = (np.linalg.svd(rows, compute_uv=False) if rows.shape[0] > 0
+                                 else np.ones((1,), rows.dtype))
+    return values, _failures(values, system.least_squares, tolerance, np)
+
+
+def _diagnostic_values(system, q, qd, t, args, tolerance, spectra=True):
+    system.check(q, qd, t, args)
+    mass = mass_matrix(system, q, qd, t, args)
+    f, f_dot, g = _constraints.constraint_residuals(system, q, qd, t, args)
+    rows, _ = _constraints.constraint_rows(system, q, qd, t, args)
+    active = initial_activity(system, q, t, args, tolerance)
+    unilateral = jnp.zeros(f.shape, bool)
+    for i in system.unilateral:
+        unilateral = unilateral.at[i].set(True)
+    row_weight = jnp.concatenate([active, jnp.ones(g.shape, bool)]).astype(q.dtype)
+    if system.unilateral:
+        _, lam, _ = accelerations_and_multipliers(system, q, qd, t, args, active=active)
+        scale = 1.0 + jnp.max(jnp.abs(lam))
+        wrong_sign = jnp.any(active & unilateral & (lam < -tolerance * scale))
+    else:
+        wrong_sign = jnp.asarray(False)
+    off_diagonal = mass - jnp.diag(jnp.diagonal(mass))
+    not_diagonal = system.diagonal_mass & ~(
+        jnp.max(jnp.abs(off_diagonal)) <= rcond(1e-12, q.dtype) * jnp.max(jnp.abs(mass))
+    )
+    parameters = [jnp.all(jnp.isfinite(x)) for x in _inexact_leaves(args)]
+    if spectra:
+        weighted = rows * row_weight[:, None]
+        spectra = dict(
+            eigenvalues=jnp.linalg.eigvalsh(mass),
+            singular_values=(jnp.linalg.svd(weighted, compute_uv=False) if rows.shape[0] > 0
+                             else jnp.ones((1,), q.dtype)),
+        )
+    else:
+        spectra = {}
+    return dict(
+        **spectra,
+        finite=jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(qd)),
+        args_finite=jnp.stack(parameters) if parameters else jnp.ones((0,), bool),
+        constraints_finite=jnp.all(jnp.isfinite(f)) & jnp.all(jnp.isfinite(f_dot))
+        & jnp.all(jnp.isfinite(g)),
+        not_diagonal=not_diagonal,
+        mass=mass,
+        f=jnp.where(active, f, 0.0),
+        f_dot=jnp.where(active, f_dot, 0.0),
+        f_raw=f,
+        g=g,
+        rows=rows * row_weight[:, None],
+        num_active=jnp.sum(row_weight),
+        violated=jnp.any(unilateral & (f < -tolerance)),
+        wrong_sign=wrong_sign,
+    )
+
+
+def _is_inexact(x) -> bool:
+    return (isinstance(x, (jax.Array, np.ndarray, np.generic, float, complex))
+            and jnp.issubdtype(jnp.result_type(x), jnp.inexact))
+
+
+def _inexact_leaves(tree):
+    return [x for x in jax.tree.leaves(tree) if _is_inexact(x)]
+
+
+def _inexact_names(tree) -> list[str]:
+    return [f"args{jax.tree_util.keystr(path)}" for path, x in
+            jax.tree_util.tree_leaves_with_path(tree) if _is_inexact(x)]
+
+
+def _failures(d, least_squares: bool, tolerance: float, xp=jnp):
+    """Which checks fail, from :func:`_diagnostic_values` (``xp``: ``jax.numpy`` in a program,
+    ``numpy`` on the host)."""
+    eig = d["eigenvalues"]
+    sv = d["singular_values"]
+    residual = xp.concatenate([xp.abs(d["f"]), xp.abs(d["f_dot"]), xp.abs(d["g"]),
+                               xp.zeros((1,), eig.dtype)])
+    rank = xp.sum(sv > rcond(CONSTRAINT_RCOND, sv.dtype) * sv[0])
+    return dict(
+        nonfinite=~d["finite"],
+        nonfinite_args=~xp.all(d["args_finite"]),
+        nonfinite_constraints=~d["constraints_finite"],
+        not_diagonal=d["not_diagonal"],
+        mass=~(eig[0] > rcond(MASS_RCOND, eig.dtype) * xp.max(xp.abs(eig))),
+        rank=xp.asarray(False)
+        if least_squares or d["rows"].shape[0] == 0
+        else rank < d["num_active"],
+        off_manifold=~(xp.max(residual) <= tolerance),
+        violated=d["violated"],
+        wrong_sign=d["wrong_sign"],
+    )
+
+
+def _dependent_rows(rows: np.ndarray, m_h: int) -> list[str]:
+    """Name each constraint row that is a linear combination of the rows before it."""
+    found, kept = [], []
+    for i in range(rows.shape[0]):
+        candidate = np.array(kept + [rows[i]])
+        sv = np.linalg.svd(candidate, compute_uv=False)
+        rank = int(np.sum(sv > rcond(CONSTRAINT_RCOND, rows.dtype) * max(sv[0], 1e-300)))
+        if rank == candidate.shape[0]:
+            kept.append(rows[i])
+        else:
+            name = f"holonomic[{i}]" if i < m_h else f"velocity[{i - m_h}]"
+            found.append(name)
+    return found
+
+
+_POINTER = (
+    "Use jl.consistent_initial_state(system, q0, qd0, t0, args) to project an approximate "
+    "initial state onto the constraint manifold."
+)
+
+
+def _tolerance_text(tolerance: float, dtype) -> str:
+    text = f"{tolerance:g}"
+    if np.dtype(dtype) != np.float64:
+        text += (f" (the state is {np.dtype(dtype).name}: jax_enable_x64 is off; enable it with "
+                 "jax.config.update('jax_enable_x64', True), or pass a constraint_tolerance "
+                 "suited to single precision)")
+    return text
+
+
+class _Static(eqx.Module):
+    """What the message needs besides the numbers (hashable: closed over by the callback)."""
+
+    unilateral: tuple = eqx.field(static=True)
+    tolerance: float = eqx.field(static=True)
+    arg_names: tuple = eqx.field(static=True)
+
+
+def _initial_message(d, fail, static: _Static, where: str = "at the initial state") -> str | None:
+    """The message for one member's host diagnostics, or None (shared by both paths)."""
+    if not any(bool(x) for x in fail.values()):
+        return None
+    if bool(fail.get("nonfinite", False)):
+        return f"The initial state is not finite: q0={np.asarray(d['q'])}, qd0={np.asarray(d['qd'])}."
+    if bool(fail.get("nonfinite_args", False)):
+        bad = [name for name, ok in zip(static.arg_names, np.asarray(d["args_finite"])) if not ok]
+        return (f"A parameter in args is not finite (NaN or inf): {', '.join(bad)}. Every "
+                "floating-point leaf of args must be finite.")
+    if bool(fail.get("mass", False)):
+        return (
+            f"The mass matrix M = ∂²L/∂q̇² is singular or not positive definite {where} "
+            f"(eigenvalues {np.asarray(d['eigenvalues'])}). The Lagrangian is degenerate: "
+            "every coordinate needs a kinetic term with a positive coefficient."
+        )
+    if bool(fail.get("nonfinite_constraints", False)):
+        return (
+            f"The constraint functions are not finite {where}: f(q0) = "
+            f"{np.asarray(d['f_raw'])}, ḟ = {np.asarray(d['f_dot'])}, g = {np.asarray(d['g'])} "
+            f"(q0 = {np.asarray(d['q'])})."
+        )
+    if bool(fail.get("not_diagonal", False)):
+        matrix = f":\n{np.asarray(d['mass'])}" if "mass" in d else " (call outside jit to see M)."
+        return (
+            "The system declares diagonal_mass=True, but M = ∂²L/∂q̇² has off-diagonal "
+            f"entries {where}" + matrix
+        )
+    if bool(fail.get("rank", False)):
+        m_h = d["f"].shape[0]
+        names = (_dependent_rows(np.asarray(d["rows"]), m_h) if "rows" in d
+                 else ["(call simulate outside jit to see which)"])
+        return (
+            f"The constraints are redundant or conflicting {where}: the constraint "
+            f"Jacobian [J; A] (singular values {np.asarray(d['singular_values'])}) is rank "
+            f"deficient; dependent rows: {', '.join(names)}. Remove them, or pass "
+            "least_squares=True to jl.System to accept consistent redundant constraints "
+            "(minimum-norm multipliers)."
+        )
+    if bool(fail.get("violated", False)):
+        return (
+            f"A unilateral constraint is violated at the initial state (f_i < 0): f(q0) = "
+            f"{np.asarray(d['f_raw'])}, unilateral indices {static.unilateral}. One-sided "
+            "constraints are written f_i(q, t) >= 0."
+        )
+    if bool(fail.get("off_manifold", False)):
+        return (
+            "The initial state is off the constraint manifold beyond the tolerance "
+            f"{_tolerance_text(static.tolerance, np.asarray(d['q']).dtype)}: f(q0) = "
+            f"{np.asarray(d['f'])}, ḟ = J q̇0 + ∂f/∂t = {np.asarray(d['f_dot'])}, velocity "
+            f"constraints g = {np.asarray(d['g'])}. " + _POINTER
+        )
+    if bool(fail.get("wrong_sign", False)):
+        return (
+            "A unilateral constraint in contact at t0 has a multiplier of the wrong sign: it "
+            "would have to pull (λ_i < 0) to hold, so it cannot be in contact. Start the motion "
+            f"off the constraint (f_i > 0) instead. f(q0) = {np.asarray(d['f_raw'])}."
+        )
+    return None
+
+
+def _batched_initial_message(static: _Static, payload) -> str | None:
+    """:func:`_initial_message` for the first failed member of a (possibly batched) payload."""
+
+    d, fail = payload
+    flags = ft.reduce(np.logical_or, [np.asarray(x) for x in fail.values()])
+    members = failed_members(flags)
+    if not members:
+        return None
+    index = members[0]
+    text = _initial_message(*member((d, fail), index), static)
+    return batch_prefix(index, flags, members) + (text or "")
+
+
+def validate_initial_state(system, q, qd, t, args, tolerance: float | None):
+    """Check the initial state; return ``(q, qd)`` (threaded through the run-time checks).
+
+    Concrete inputs raise ``ValueError`` here; traced ones compile the check into the program
+    (:func:`jaxlag.failures.raise_from_program`), which raises the same message with the numbers
+    (for the first failing member of a batch) when the program runs."""
+
+    if tolerance is None:
+        tolerance = default_constraint_tolerance(jnp.result_type(q))
+    static = _Static(tuple(system.unilateral), float(tolerance), tuple(_inexact_names(args)))
+    if is_concrete((q, qd, t, args)):
+        host = _diagnostics_on_host(system, q, qd, t, args, tolerance)
+        if host is not None:
+            d, fail = host
+            text = _initial_message(dict(d, q=np.asarray(q), qd=np.asarray(qd)), fail, static)
+            if text is not None:
+                raise ValueError(text)
+            return q, qd
+    d, fail = _diagnostics(system, q, qd, t, args, tolerance)
+    d = dict(d, q=q, qd=qd)
+    # Concrete inputs can still give traced flags: a user function may close over a traced value.
+    if is_concrete((q, qd, t, args, fail)):
+        host = jax.device_get((d, fail))  # one transfer; the values are fetched only to report
+        text = _initial_message(*host, static)
+        if text is not None:
+            raise ValueError(text)
+        return q, qd
+    failed = jnp.any(jnp.stack([jnp.asarray(x) for x in fail.values()]))
+    report = Report(ft.partial(_batched_initial_message, static), ValueError)
+    # The matrices stay on the device: the compiled message names the problem and its numbers
+    # (eigenvalues, singular values, residuals); the eager call also shows M and the rows.
+    small = {k: v for k, v in d.items() if k not in ("mass", "rows")}
+    q = raise_from_program(q, failed, report, (small, fail))
+    return q, qd
+
+
+def initial_state_diagnostics(system, q, qd, t, args, tolerance):
+    """``(values, failures)`` of the initial-state check as values (traceable, no callback):
+    for programs that return their checks to the host (:func:`raise_for_initial_states`)."""
+    d, fail = _diagnostics(system, q, qd, t, args, tolerance)
+    return dict(d, q=q, qd=qd), fail
+
+
+def raise_for_initial_states(system, diagnostics, args, tolerance) -> None:
+    """Raise ``ValueError`` on the host for the first failing member of (batched)
+    :func:`initial_state_diagnostics`, with the message of :func:`validate_initial_state`."""
+    d, fail = jax.device_get(diagnostics)
+    static = _Static(tuple(system.unilateral), float(tolerance), tuple(_inexact_names(args)))
+    text = _batched_initial_message(static, (d, fail))
+    if text is not None:
+        raise ValueError(text)
+
+
+# ----------------------------------------------------------------------------- System methods
+def _state_message(what: str, static: _Static, payload) -> str | None:
+    """Why ``System.<what>`` is not finite at a state (first failing member of a batch)."""
+
+    bad, d, fail = payload
+    members = failed_members(np.asarray(bad))
+    if not members:
+        return None
+    index = members[0]
+    bad_i, d_i, fail_i = member((bad, d, fail), index)
+    text = _initial_message(d_i, fail_i, static, where="at this state")
+    if text is None:
+        text = ("L, M and the constraints are regular here; a force, dissipation or constraint "
+                "function returns NaN or inf, or the state is outside their domain.")
+    state = f"q = {np.asarray(d_i['q'])}, q̇ = {np.asarray(d_i['qd'])}"
+    return batch_prefix(index, bad, members) + f"System.{what} is not finite at {state}: {text}"
+
+
+_STATE_CHECKS = ("nonfinite", "nonfinite_args", "mass", "nonfinite_constraints", "rank")
+
+
+def check_state_result(system, what: str, out, q, qd, t, args):
+    """``out`` (a result of a System method at one state), or a ``ValueError`` naming why it
+    cannot be trusted: a singular or indefinite mass matrix, redundant constraints, non-finite
+    inputs or a non-finite result (a singular M gives huge finite accelerations, not NaN, so the
+    eigenvalues are checked, with the thresholds of the initial-state check). Eager for concrete
+    values (the diagnostics program is the one ``simulate``'s check compiles); compiled in
+    otherwise."""
+
+    tolerance = default_constraint_tolerance(jnp.result_type(q))
+    static = _Static(tuple(system.unilateral), tolerance, tuple(_inexact_names(args)))
+    host = None
+    if is_concrete((out, q, qd, t, args)):
+        host = _diagnostics_on_host(system, q, qd, t, args, tolerance)
+    if host is not None:
+        d, fail = host
+        flags = {k: fail[k] for k in _STATE_CHECKS}
+        bad = not np.all(np.isfinite(jax.device_get(out)))
+        if bad or any(bool(x) for x in flags.values()):
+            raise ValueError(_state_message(what, static, (True, dict(d, q=q, qd=qd), flags)))
+        return out
+    d = _diagnostic_values(system, q, qd, t, args, tolerance)
+    fail = _failures(d, system.least_squares, tolerance)
+    flags = {k: fail[k] for k in _STATE_CHECKS}
+    bad = ~jnp.all(jnp.isfinite(out)) | jnp.any(jnp.stack(list(flags.values())))
+    report = Report(ft.partial(_state_message, what, static), ValueError)
+    return raise_from_program(out, bad, report, (bad, dict(d, q=q, qd=qd), flags))

@@ -1,0 +1,147 @@
+"""How jaxlag compiles its own programs: XLA options chosen for the time to the first result.
+
+Research scripts run once, so compilation is part of the cost of every result. On the CPU,
+XLA's newer MLIR fusion emitters compile each fused kernel as its own LLVM module; a diffrax
+solve has ~90 of them, and compiling them dominates the first call. The older emitters
+(``xla_cpu_use_fusion_emitters=False``) produce code that runs as fast on these small,
+latency-bound programs. Measured on this project's 2-core CPU machine (``benchmarks/RESULTS.md``):
+
+* README first example (particle on a sphere, 201 saves), XLA compile of the solve
+  1.6-1.9 s → 0.9-1.0 s; its first ``jax.grad`` (forward sensitivities) 4.9 s → 1.8 s of XLA time;
+* run time per step within ±5 % (double pendulum 1.03×, 10-link angle chain 0.96×, 10-link
+  Cartesian chain 1.00×, same process, alternating, medians).
+
+Every program jaxlag compiles itself (``simulate``, ``simulate_batch``, ``fit``, the checks, the
+derived quantities of a trajectory, ...) is jitted by :func:`filter_jit`, which passes
+:func:`compiler_options` to ``jax.jit`` when the default backend is the CPU (on GPUs and TPUs
+nothing changes). Inside a user's own ``jax.jit`` the outer program's options apply: pass
+``compiler_options=jl.compiler_options()`` to it to get the same compile time. Set the
+environment variable ``JAXLAG_COMPILER_OPTIONS=0`` to compile with XLA's defaults (as happens
+by itself with an XLA that does not know the option: checked once, by one tiny compile).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+
+import equinox as eqx
+import jax
+import jax.extend.core as jcore
+import numpy as np
+
+#: XLA options for the CPU backend (see the module docstring for the measurements).
+CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+
+def _switched_off(variable: str) -> bool:
+    """Whether the environment variable says 0/false/no/off (jaxlag's opt-outs)."""
+    return os.environ.get(variable, "1").strip().lower() in ("0", "false", "no", "off")
+
+
+def compiler_options(backend: str | None = None) -> dict:
+    """The XLA options jaxlag compiles with on ``backend`` (default: JAX's default backend).
+
+    Pass them to your own ``jax.jit(f, compiler_options=jl.compiler_options())`` around code
+    that calls jaxlag: a jaxlag function traced inside your ``jit`` is compiled as part of your
+    program, with its options. Empty on GPU/TPU, or when ``JAXLAG_COMPILER_OPTIONS=0``.
+    """
+    backend = jax.default_backend() if backend is None else backend
+    if backend != "cpu" or _switched_off("JAXLAG_COMPILER_OPTIONS") or not _cpu_options_supported():
+        return {}
+    return dict(CPU_COMPILER_OPTIONS)
+
+
+@functools.cache
+def _cpu_options_supported() -> bool:
+    """Whether this XLA knows the options (older jaxlibs reject unknown ones): one tiny compile,
+    once per process."""
+    try:
+        on_cpu = jax.device_put(np.float32(0), jax.devices("cpu")[0])
+        jax.jit(lambda x: x + 1, compiler_options=CPU_COMPILER_OPTIONS).lower(on_cpu).compile()
+        return True
+    except Exception:  # noqa: BLE001 - any refusal: compile with XLA's defaults
+        return False
+
+
+#: Traces under which a jitted call is still compiled as a top-level program (evaluated eagerly,
+#: possibly pushed forward or batched); under any other (``jit``, ``make_jaxpr``, ``eval_shape``,
+#: reverse-mode linearization) it is staged into an enclosing program, where JAX forbids options.
+_TOP_LEVEL_TRACES = ("EvalTrace", "JVPTrace", "BatchTrace")
+
+
+def _trace_kinds() -> list[str] | None:
+    """The class names of the active traces, innermost first, by ``jax.extend.core``'s current
+    trace and each trace's ``parent_trace``; None when unknown (then callers are conservative)."""
+    try:
+        with jcore.take_current_trace() as trace:
+            kinds = []
+            while trace is not None and len(kinds) < 64:
+                kinds.append(type(trace).__name__)
+                trace = getattr(trace, "parent_trace", None)
+            return kinds
+    except Exception:  # noqa: BLE001 - JAX changed: be conservative
+        return None
+
+
+def _compiled_at_top_level() -> bool:
+    """Whether a ``jax.jit`` called now becomes its own compiled program (conservative: False
+    when unsure; then the program is compiled with XLA's defaults, never a different result)."""
+    kinds = _trace_kinds()
+    return kinds is not None and all(kind in _TOP_LEVEL_TRACES for kind in kinds)
+
+
+def no_transformation_active() -> bool:
+    """Whether code runs outside every JAX transformation (no ``jit``, ``grad``, ``vmap``
+    trace): then no function can close over a traced value. Conservative: False when unsure."""
+    kinds = _trace_kinds()
+    return kinds is not None and all(kind == "EvalTrace" for kind in kinds)
+
+
+class _BackendJit:
+    """``eqx.filter_jit(fn)`` that compiles with :func:`compiler_options` of the default backend.
+
+    Two wrappers are kept (tuned and plain); which one runs is chosen at each call: tuned when
+    the call compiles its own program on the CPU, plain when it is traced into an enclosing
+    ``jit`` (JAX accepts options only on top-level programs). Both are created lazily.
+    """
+
+    def __init__(self, fn, jitkwargs):
+        functools.update_wrapper(self, fn)
+        self._fn = fn
+        self._jitkwargs = jitkwargs
+        self._wrappers: dict[bool, object] = {}
+
+    def _wrapper(self):
+        options = compiler_options() if _compiled_at_top_level() else {}
+        tuned = bool(options)
+        wrapper = self._wrappers.get(tuned)
+        if wrapper is None:
+            kwargs = dict(self._jitkwargs)
+            if tuned:
+                kwargs["compiler_options"] = {**options, **kwargs.get("compiler_options", {})}
+            wrapper = self._wrappers[tuned] = eqx.filter_jit(self._fn, **kwargs)
+        return wrapper
+
+    def __call__(self, *args, **kwargs):
+        return self._wrapper()(*args, **kwargs)
+
+    def lower(self, *args, **kwargs):
+        return self._wrapper().lower(*args, **kwargs)
+
+
+def filter_jit(fn=None, **jitkwargs):
+    """``equinox.filter_jit`` compiling with :func:`compiler_options` (usable as a decorator)."""
+    if fn is None:
+        return functools.partial(filter_jit, **jitkwargs)
+    return _BackendJit(fn, jitkwargs)
+
+
+def jit(fn=None, **jitkwargs):
+    """``jax.jit`` compiling with :func:`compiler_options` when it is a top-level program."""
+    if fn is None:
+        return functools.partial(jit, **jitkwargs)
+    options = compiler_options() if _compiled_at_top_level() else {}
+    if options:
+        jitkwargs["compiler_options"] = {**options, **jitkwargs.get("compiler_options", {})}
+    return jax.jit(fn, **jitkwargs)

@@ -1,0 +1,655 @@
+r"""System identification: fit parameters (and initial states) to observed trajectories.
+
+The model of experiment ``e`` at save time ``t_i`` is ``y_e(t_i) = observe(q(t_i), q̇(t_i), t_i, args)``
+where ``(q, q̇)`` comes from :func:`~jaxlag.simulate` with ``args = {**fixed_args, **params}``.
+The fit minimizes the least-squares loss
+
+    ℓ(θ) = ½ Σ_{e,i,k} r_{eik}²,     r = (y_model − y_observed) / σ
+
+over the free parameters ``θ`` (optionally through a reparameterization, e.g. ``θ = exp(u)`` for
+positive parameters), where NaN observations are masked out (they contribute no residual).
+
+Two optimizers:
+
+* ``method="levenberg_marquardt"`` (default) or ``"gauss_newton"``: optimistix' least-squares
+  solvers. The Jacobian of the residuals is built in forward mode (``diffrax.ForwardMode``), one
+  tangent per parameter, which for a handful of parameters is far cheaper than reverse mode.
+* any ``optax.GradientTransformation``: gradient descent on ``ℓ`` with ``jax.value_and_grad``
+  through the simulation (the default :class:`~jaxlag.ForwardSensitivities`: forward
+  sensitivities for up to 10 free scalars, else ``diffrax.RecursiveCheckpointAdjoint``).
+
+Standard errors come from the Gauss–Newton approximation at the optimum: with the Jacobian
+``J = ∂r/∂θ`` in physical parameters, ``Cov = σ̂² (JᵀJ)⁻¹``, where ``σ̂² = |r|²/(N − p)`` is
+estimated from the residuals unless ``noise_std`` is given (then ``Cov = (JᵀJ)⁻¹``).
+
+Chaotic or long trajectories: ``shooting_segments=S`` splits each experiment into ``S`` segments,
+each starting from its own free state, and adds continuity residuals
+``w (x_end(segment k) − x_start(segment k+1))`` (multiple shooting).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optimistix as optx
+from jax.flatten_util import ravel_pytree
+
+from . import _compile as compilation
+from ._conventions import wrap_state_function
+from ._adjoint import ForwardSensitivities
+from ._simulate import simulate
+from . import _errors as failures
+from ._stabilization import (
+    consistent_initial_state,
+    default_projection_tolerance,
+    position_failure_message,
+    projection_with_residuals,
+)
+
+
+
+# ----------------------------------------------------------------------------- reparameterization
+class Identity(eqx.Module):
+    """No reparameterization: ``θ = u``."""
+
+    def to_physical(self, u):
+        return u
+
+    def to_unconstrained(self, p):
+        return p
+
+
+class Positive(eqx.Module):
+    """Positive parameter: ``θ = exp(u)``."""
+
+    def to_physical(self, u):
+        return jnp.exp(u)
+
+    def to_unconstrained(self, p):
+        return jnp.log(p)
+
+
+class Bounded(eqx.Module):
+    """Parameter in ``(lower, upper)``: ``θ = lower + (upper − lower) sigmoid(u)``."""
+
+    lower: float
+    upper: float
+
+    def to_physical(self, u):
+        return self.lower + (self.upper - self.lower) * jax.nn.sigmoid(u)
+
+    def to_unconstrained(self, p):
+        s = (p - self.lower) / (self.upper - self.lower)
+        return jnp.log(s) - jnp.log1p(-s)
+
+
+# ----------------------------------------------------------------------------- data
+class Experiment(eqx.Module):
+    """One observed run: save times ``ts`` (T,), ``observations`` (T, k), initial state.
+
+    ``q0``, ``qd0`` are the known initial state, or the starting guess when the initial state is
+    estimated. NaN entries of ``observations`` are missing data and are masked out. Several
+    experiments of equal shapes are passed as a list (stacked and ``vmap``-ed internally).
+    """
+
+    ts: Any
+    observations: Any
+    q0: Any
+    qd0: Any
+
+
+def _observe_coordinates(q, qd):
+    return q
+
+
+def _stack(experiments) -> Experiment:
+    if isinstance(experiments, Experiment):
+        experiments = [experiments]
+    experiments = list(experiments)
+    if not experiments:
+        raise ValueError("fit needs at least one Experiment.")
+    shapes = {(jnp.shape(e.ts), jnp.shape(e.observations), jnp.shape(e.q0)) for e in experiments}
+    if len(shapes) != 1:
+        raise ValueError(
+            "All experiments must have the same shapes (ts, observations, q0) to be batched with "
+            f"vmap; got {sorted(shapes)}. Pad shorter ones with NaN observations."
+        )
+    for e in experiments:
+        ts = np.asarray(e.ts)
+        if ts.ndim != 1 or not np.all(np.diff(ts) > 0):
+            raise ValueError("Each experiment's ts must be a strictly increasing 1-D array.")
+        if np.ndim(e.observations) != 2 or np.shape(e.observations)[0] != ts.shape[0]:
+            raise ValueError(
+                f"observations must have shape (T, k) with T = len(ts) = {ts.shape[0]}; got "
+                f"{np.shape(e.observations)}."
+            )
+    # Stacked on the host (NumPy, JAX's default float type): the fit's bookkeeping compiles no
+    # small device programs; the arrays go to the device as inputs of the compiled programs.
+    dtype = jax.dtypes.canonicalize_dtype(float)
+    return jax.tree.map(lambda *xs: np.stack([np.asarray(x, dtype) for x in xs]), *experiments)
+
+
+class FitResult(eqx.Module):
+    """Outcome of :func:`fit`.
+
+    ``params``: fitted parameters (physical values, same structure as the initial guess).
+    ``standard_errors``: same structure; ``covariance``: (p, p) over ``jax.flatten_util.ravel_pytree``
+    order of ``params``. ``initial_states``: fitted ``(q0, qd0)`` per experiment when estimated.
+    ``loss_history``: ``ℓ`` after each optimizer step (index 0 is the starting point).
+    ``segment_states``: ``(q, qd)`` of shape (E, S, n), the state each shooting segment starts from.
+    """
+
+    params: Any
+    standard_errors: Any
+    covariance: Any
+    residual_std: Any
+    loss_history: Any
+    initial_states: Any
+    num_steps: int
+    converged: bool
+    segment_states: Any = None
+
+
+# ----------------------------------------------------------------------------- model
+class _ParamSpec(eqx.Module):
+    """Static description of the parameter dict, so repeated fits reuse compiled code."""
+
+    keys: tuple = eqx.field(static=True)
+    shapes: tuple = eqx.field(static=True)
+
+    def ravel(self, params):
+        return jnp.concatenate([jnp.ravel(params[k]) for k in self.keys])
+
+    def unravel(self, flat):
+        out, i = {}, 0
+        for k, shape in zip(self.keys, self.shapes):
+            size = int(np.prod(shape))
+            out[k] = flat[i:i + size].reshape(shape)
+            i += size
+        return out
+
+
+class _Model(eqx.Module):
+    """Maps the free variables to residuals; holds everything static about the fit.
+
+    Free variables: ``{"params": flat unconstrained parameters}`` plus, when the initial state is
+    estimated, ``"states"`` (all segment states), or with multiple shooting alone ``"later"``
+    (the states of segments 1..S−1; segment 0 starts from the known initial state).
+    """
+
+    system: Any
+    observe: Any
+    transforms: Any
+    spec: _ParamSpec
+    segments: int = eqx.field(static=True)
+    estimate_initial_state: bool = eqx.field(static=True)
+    simulate_kwargs: tuple = eqx.field(static=True)
+    periodic: tuple = eqx.field(static=True, default=())
+
+    def physical(self, flat):
+        params = self.spec.unravel(flat)
+        return {k: self.transforms.get(k, Identity()).to_physical(v) for k, v in params.items()}
+
+    def unconstrained(self, physical):
+        return self.spec.ravel({k: self.transforms.get(k, Identity()).to_unconstrained(v)
+                                for k, v in physical.items()})
+
+    def split(self, states):
+        """Free part of the segment states, and the fixed part."""
+        if self.estimate_initial_state:
+            return {"states": states}, None
+        if self.segments > 1:
+            return {"later": (states[0][:, 1:], states[1][:, 1:])}, (states[0][:, :1],
+                                                                     states[1][:, :1])
+        return {}, states
+
+    def states(self, free, fixed_states):
+        if self.estimate_initial_state:
+            return free["states"]
+        if self.segments > 1:
+            return (jnp.concatenate([fixed_states[0], free["later"][0]], axis=1),
+                    jnp.concatenate([fixed_states[1], free["later"][1]], axis=1))
+        return fixed_states
+
+    def observations_of(self, params, data, states, adjoint, health=False):
+        """The observations of every segment, their end states, and (``health=True``) what the
+        host must check afterwards instead of checks compiled into the program: the simulation
+        failure records and the residual of the initial-state projection, shape (E, S) each.
+        The save times were checked on the host (``fit`` checks its data once)."""
+        args = {**data["fixed"], **params}
+
+        def one_segment(ts, q0, qd0):
+            kwargs = dict(self.simulate_kwargs)
+            residual = jnp.zeros((), q0.dtype)
+            if self.system.is_constrained:
+                if health:
+                    q0, qd0, residual, _ = projection_with_residuals(self.system, q0, qd0, ts[0],
+                                                                     args)
+                else:
+                    q0, qd0 = consistent_initial_state(self.system, q0, qd0, ts[0], args)
+            if health:  # projected states are on the manifold: the failure record covers the rest
+                kwargs.update(throw=False, check_times=False, check_initial_state=False)
+            traj = simulate(self.system, q0, qd0, ts, args=args, adjoint=adjoint, **kwargs)
+            y = jax.vmap(lambda q, qd, t: self.observe(q, qd, t=t, args=args))(traj.q, traj.qd, ts)
+            return y, traj.q[-1], traj.qd[-1], (traj.failure, residual)
+
+        # states: (E, S, n) each; ts_seg: (E, S, m + 1)
+        if data["ts_seg"].shape[:2] == (1, 1):
+            # One experiment, one segment: no batching transform of the solver (its fixpoints
+            # over diffrax's loops are most of the tracing time of the least-squares program).
+            out = one_segment(data["ts_seg"][0, 0], states[0][0, 0], states[1][0, 0])
+            y, q_end, qd_end, checks = jax.tree.map(lambda x: jnp.asarray(x)[None, None], out)
+        else:
+            y, q_end, qd_end, checks = jax.vmap(jax.vmap(one_segment))(
+                data["ts_seg"], states[0], states[1])
+        return (y, q_end, qd_end, checks) if health else (y, q_end, qd_end)
+
+    def residuals(self, free, data, fixed_states, adjoint, health=False):
+        """The weighted residuals; with ``health=True`` also the checks of
+        :meth:`observations_of` (the host raises with :func:`_raise_for_health`)."""
+        params = self.physical(free["params"])
+        states = self.states(free, fixed_states)
+        y, q_end, qd_end, *checks = self.observations_of(params, data, states, adjoint, health)
+        # Stitch segments back to the save grid: drop each later segment's first (shared) point.
+        e = y.shape[0]
+        rest = y[:, 1:, 1:].reshape(e, -1, y.shape[-1])
+        y = jnp.concatenate([y[:, 0], rest], axis=1)
+        observed = data["observations"]
+        mask = jnp.isfinite(observed)
+        r = jnp.where(mask, (y - jnp.where(mask, observed, 0.0)) / data["noise"], 0.0)
+        pieces = [r.ravel()]
+        if self.segments > 1:
+            w = data["continuity_weight"]
+            gap = q_end[:, :-1] - states[0][:, 1:]
+            if self.periodic:
+                # Angles meet modulo 2π: wrap the gap of periodic coordinates into [−π, π).
+                index = jnp.asarray(self.periodic)
+                wrapped = jnp.mod(gap[..., index] + jnp.pi, 2 * jnp.pi) - jnp.pi
+                gap = gap.at[..., index].set(wrapped)
+            pieces.append((w * gap).ravel())
+            pieces.append((w * (qd_end[:, :-1] - states[1][:, 1:])).ravel())
+        r = jnp.concatenate(pieces)
+        return (r, checks[0]) if health else r
+
+
+def _residuals_and_jacobian(model, free, data, fixed_states):
+    """``(r, J, y)``: the residuals at the free variables ``free``, their Jacobian with respect to
+    the raveled free variables ``y`` (``jax.flatten_util.ravel_pytree`` order) and ``y``.
+
+    Forward mode, one tangent per free scalar under ``vmap`` (the primal solve is not batched,
+    so it runs once). This is the one large program of a least-squares fit: the optimizer's own
+    step only sees the linear model built from it (:func:`_linear_model`). Its checks (a failed
+    simulation, an initial state that cannot be projected) are returned and raised here, on the
+    host: the program has no host callback, so JAX's persistent cache stores it.
+    """
+    r, jacobian, flat, checks = _linearize(model, free, data, fixed_states)
+    _raise_for_health(model, checks, free["params"], data)
+    return r, jacobian, flat
+
+
+@compilation.filter_jit
+def _linearize(model, free, data, fixed_states):
+    flat, unravel = ravel_pytree(free)
+
+    def residuals(y):
+        return model.residuals(unravel(y), data, fixed_states, diffrax.ForwardMode(), health=True)
+
+    def push(direction):
+        return jax.jvp(residuals, (flat,), (direction,), has_aux=True)
+
+    if flat.shape[0] == 1:  # one free variable: a plain jvp, no size-1 batch of the solver
+        r, column, checks = push(jnp.ones_like(flat))
+        return r, column[:, None], flat, checks
+    r, columns, checks = jax.vmap(push, out_axes=(None, 0, None))(
+        jnp.eye(flat.shape[0], dtype=flat.dtype))
+    return r, columns.T, flat, checks
+
+
+def _raise_for_health(model, checks, flat_params, data) -> None:
+    """Raise what the checks of :meth:`_Model.observations_of` found (host side): an initial
+    state the projection could not bring onto the constraint manifold (``ValueError``, as
+    :func:`~jaxlag.consistent_initial_state`), or a failed simulation (``SimulationError``, with
+    the diagnosis at the parameters being tried)."""
+    failure, residual = jax.device_get(checks)
+    residual = np.asarray(residual)
+    tolerance = default_projection_tolerance(residual.dtype)
+
+    def where(index):
+        return (f"experiment {index[0]}" if model.segments == 1
+                else f"experiment {index[0]}, shooting segment {index[1]}")
+
+    bad = np.argwhere(~(residual <= tolerance))
+    if bad.size:
+        raise ValueError(f"jl.fit, {where(tuple(bad[0]))}: "
+                         + position_failure_message(tolerance, residual.dtype))
+    failed = np.argwhere(np.asarray(failure.code) != failures.NONE)
+    if failed.size:
+        index = tuple(failed[0])
+        params = model.physical(flat_params)  # only now: eager operations compile
+        args = jax.device_get({**data["fixed"], **params})
+        text = failures.describe(failures.member(failure, index), model.system, args)
+        raise failures.SimulationError(
+            f"jl.fit, {where(index)}, at parameters "
+            + ", ".join(f"{k}={np.asarray(v)}" for k, v in params.items()) + ": " + text)
+
+
+def _linear_model(free, linearization):
+    """``r + J (y − y₀)``: the residuals linearized at ``y₀`` (``linearization = (r, J, y₀)``).
+
+    optimistix' Gauss–Newton/Levenberg–Marquardt step evaluates the residual function only at
+    its trial point ``state.y_eval`` and linearizes it there; given the linearization at that
+    point this model has the same value (``r``) and the same Jacobian (``J``), so the step is the
+    one the solver takes on the simulation itself, without tracing the simulation into it.
+    """
+    r, jacobian, anchor = linearization
+    return r + jacobian @ (ravel_pytree(free)[0] - anchor), None
+
+
+@compilation.filter_jit
+def _ls_init(solver, free, linearization):
+    f_struct, aux_struct = jax.eval_shape(_linear_model, free, linearization)
+    return solver.init(_linear_model, free, linearization, {}, f_struct, aux_struct, frozenset())
+
+
+@compilation.filter_jit
+def _ls_step(solver, free, state, linearization):
+    """One optimistix step at ``state.y_eval`` (where ``linearization`` was taken); also the loss
+    at the returned point: optimistix keeps the residuals of the last accepted point (the
+    returned one) in ``state.f_info`` (after the first step, which only evaluates, the loss at
+    the start)."""
+    free, state, _ = solver.step(_linear_model, free, linearization, {}, state, frozenset())
+    done, _ = solver.terminate(_linear_model, free, linearization, {}, state, frozenset())
+    # At the optimum the actual reduction is rounding noise and trial steps can be rejected
+    # (the trust region then shrinks the step 4x per step, up to ~16 more steps): a rejected
+    # trial whose step is already within the solver's y tolerance ends the fit, as further
+    # steps could not move the parameters by more than that tolerance.
+    y = ravel_pytree(free)[0]
+    trial = ravel_pytree(state.y_eval)[0] - y
+    within = solver.norm(jnp.abs(trial) / (solver.atol + solver.rtol * jnp.abs(y))) < 1
+    done = done | (within & (state.num_steps_since_acceptance > 0))
+    loss = 0.5 * jnp.sum(state.f_info.residual ** 2)
+    return free, state, done, loss
+
+
+@compilation.filter_jit
+def _value_and_grad(model, free, data, fixed_states):
+    # The default adjoint: forward sensitivities for up to 10 free scalars, else checkpointed.
+    adjoint = ForwardSensitivities()
+    return jax.value_and_grad(
+        lambda f: 0.5 * jnp.sum(model.residuals(f, data, fixed_states, adjoint) ** 2)
+    )(free)
+
+
+@compilation.filter_jit
+def _optax_update(optimizer, free, opt_state, grads):
+
+    updates, opt_state = optimizer.update(grads, opt_state, free)
+    return optax.apply_updates(free, updates), opt_state
+
+
+@compilation.filter_jit
+def _free_variables_jacobian(model, x, free_template):
+    """``∂y/∂x``: the raveled free variables ``y`` with respect to ``x`` = (physical parameters
+    in ``spec`` order, the other free variables raveled): the chain rule of the
+    reparameterizations, for the Jacobian in physical parameters."""
+    p = len(model.spec.ravel(model.physical(free_template["params"])))
+    rest_template = {k: v for k, v in free_template.items() if k != "params"}
+    _, unravel_rest = ravel_pytree(rest_template)
+
+    def free_of(x_):
+        free = {"params": model.unconstrained(model.spec.unravel(x_[:p])), **unravel_rest(x_[p:])}
+        return ravel_pytree(free)[0]
+
+    return jax.jacfwd(free_of)(x)
+
+
+@compilation.filter_jit
+def _guess_states(system, ts, q0, qd0, args, starts, simulate_kwargs):
+    guess = jax.vmap(lambda t, a, b: simulate(system, a, b, t, args=args, **dict(simulate_kwargs)))(
+        ts, q0, qd0)
+    return guess.q[:, starts], guess.qd[:, starts]
+
+
+def _segment_grid(ts, segments):
+    t = ts.shape[-1]
+    if (t - 1) % segments:
+        raise ValueError(
+            f"shooting_segments={segments} must divide len(ts) − 1 = {t - 1} (segments share their "
+            "boundary save times)."
+        )
+    m = (t - 1) // segments
+    index = np.arange(segments)[:, None] * m + np.arange(m + 1)[None, :]
+    return np.asarray(ts)[:, index], index[:, 0]
+
+
+def fit(
+    system,
+    params: dict,
+    experiments,
+    *,
+    observe: Callable | None = None,
+    args: dict | None = None,
+    transforms: dict | None = None,
+    method: str | optax.GradientTransformation = "levenberg_marquardt",
+    max_steps: int = 100,
+    rtol: float = 1e-10,
+    atol: float = 1e-10,
+    noise_std: float | None = None,
+    estimate_initial_state: bool = False,
+    shooting_segments: int = 1,
+    continuity_weight: float = 10.0,
+    segment_states=None,
+    periodic_coordinates=(),
+    progress: bool = False,
+    simulate_kwargs: dict | None = None,
+) -> FitResult:
+    """Fit ``params`` of ``system`` to ``experiments`` by least squares.
+
+    **Arguments:**
+
+    - ``system``: the :class:`~jaxlag.System` (constraints, dissipation and forces included).
+    - ``params``: dict of free parameters with their starting values.
+    - ``experiments``: an :class:`Experiment` or a list of them (equal shapes; batched by vmap).
+    - ``observe``: ``observe(q, qd, [t], [args]) -> (k,)``, what was measured (default: ``q``).
+      It matters: for a pendulum ``θ(t)`` depends only on ``g/l``, while the bob's Cartesian
+      position ``l (sin θ, −cos θ)`` identifies ``g`` and ``l`` separately.
+    - ``args``: fixed parameters, merged with ``params`` into the ``args`` the system sees.
+    - ``transforms``: per-parameter :class:`Positive` / :class:`Bounded` reparameterizations.
+    - ``method``: ``"levenberg_marquardt"``, ``"gauss_newton"`` or an ``optax`` optimizer.
+    - ``max_steps``, ``rtol``, ``atol``: optimizer limits and (optimistix) tolerances.
+    - ``noise_std``: known observation noise σ; if None it is estimated from the residuals.
+    - ``estimate_initial_state``: also fit each experiment's ``(q0, qd0)``.
+    - ``shooting_segments``, ``continuity_weight``, ``segment_states``: multiple shooting; the
+      optional ``segment_states = (q, qd)`` of shape (E, S, n) are the starting guesses of the
+      segment states (default: a simulation with the starting parameters).
+      ``periodic_coordinates``: indices of angle coordinates whose continuity gaps are taken
+      modulo 2π (so segment states may be given in any branch, e.g. from inverse kinematics).
+    - ``progress``: show a tqdm progress bar (``pip install tqdm``).
+    - ``simulate_kwargs``: passed to :func:`~jaxlag.simulate` (solver, tolerances, ...).
+
+    Returns a :class:`FitResult`.
+    """
+    batch = _stack(experiments)
+    transforms = dict(transforms or {})
+    unknown = set(transforms) - set(params)
+    if unknown:
+        raise ValueError(f"transforms name parameters that are not being fitted: {sorted(unknown)}.")
+    observe = wrap_state_function(observe or _observe_coordinates, "observation function")
+    simulate_kwargs = dict(simulate_kwargs or {})
+    simulate_kwargs.setdefault("stepsize_controller",
+                               diffrax.PIDController(rtol=1e-10, atol=1e-10))
+    simulate_kwargs.setdefault("max_steps", 16384)
+    real = jax.dtypes.canonicalize_dtype(float)  # on the host: no eager device conversions
+    fixed = {k: np.asarray(v, real) if isinstance(v, (int, float)) else v
+             for k, v in (args or {}).items()}
+    params = {k: np.asarray(v, real) for k, v in params.items()}
+
+    # Shapes of the observation function against the data.
+    q_probe = batch.q0[0]
+    out = jax.eval_shape(lambda q, qd: observe(q, qd, t=batch.ts[0, 0], args={**fixed, **params}),
+                         q_probe, batch.qd0[0])
+    if out.shape != batch.observations.shape[2:]:
+        raise ValueError(
+            f"The observation function returns shape {out.shape} per time, but the observations "
+            f"have shape {batch.observations.shape[2:]} per time."
+        )
+    if not np.any(np.isfinite(np.asarray(batch.observations))):
+        raise ValueError("All observations are NaN: nothing to fit.")
+
+    spec = _ParamSpec(tuple(params), tuple(jnp.shape(v) for v in params.values()))
+    kwargs_key = tuple(sorted(simulate_kwargs.items(), key=lambda kv: kv[0]))
+    model = _Model(system, observe, transforms, spec, int(shooting_segments),
+                   bool(estimate_initial_state), kwargs_key,
+                   tuple(int(i) for i in periodic_coordinates))
+    segments = model.segments
+    ts_seg, starts = _segment_grid(batch.ts, segments)
+    num_experiments = batch.ts.shape[0]
+    if segment_states is None:
+        if segments > 1:
+            segment_states = _guess_states(system, batch.ts, batch.q0, batch.qd0,
+                                           {**fixed, **params}, starts, kwargs_key)
+        else:
+            segment_states = (batch.q0[:, None], batch.qd0[:, None])
+    segment_states = tuple(np.asarray(s, batch.q0.dtype) for s in segment_states)
+    expected = (num_experiments, segments, batch.q0.shape[-1])
+    if segment_states[0].shape != expected or segment_states[1].shape != expected:
+        raise ValueError(f"segment_states must be (q, qd) of shape {expected} each.")
+
+    data = {
+        "fixed": fixed,
+        "observations": batch.observations,
+        "noise": 1.0 if noise_std is None else float(noise_std),
+        "ts_seg": ts_seg,
+        "continuity_weight": float(continuity_weight),
+    }
+    free_states, fixed_states = model.split(segment_states)
+    free = {"params": _unconstrained(model, params), **free_states}
+
+    bar = _progress_bar(max_steps, progress)
+    history, converged, steps = [], False, 0
+    if isinstance(method, str):
+        if method not in ("levenberg_marquardt", "gauss_newton"):
+            raise ValueError(f"method must be 'levenberg_marquardt', 'gauss_newton' or an optax "
+                             f"optimizer; got {method!r}.")
+        solver = (optx.LevenbergMarquardt(rtol=rtol, atol=atol) if method == "levenberg_marquardt"
+                  else optx.GaussNewton(rtol=rtol, atol=atol))
+        # Each step: the simulation's residuals and Jacobian at the trial point (one compiled
+        # program), then the optimizer's step on that linearization (a small one).
+        linearization = _residuals_and_jacobian(model, free, data, fixed_states)
+        state = _ls_init(solver, free, linearization)
+        if max_steps < 1:
+            history.append(float(0.5 * np.sum(np.asarray(linearization[0]) ** 2)))
+        for steps in range(1, max_steps + 1):
+            if steps > 1:
+                linearization = _residuals_and_jacobian(model, state.y_eval, data, fixed_states)
+            free, state, done, loss = _ls_step(solver, free, state, linearization)
+            loss, done = jax.device_get((loss, done))
+            if steps == 1:  # the first step evaluates the starting point and stays there
+                history.append(float(loss))
+            history.append(float(loss))
+            _tick(bar, history[-1])
+            if bool(done):
+                converged = True
+                break
+    else:
+        opt_state = method.init(free)
+        for steps in range(1, max_steps + 1):
+            value, grads = _value_and_grad(model, free, data, fixed_states)
+            history.append(float(value))
+            free, opt_state = _optax_update(method, free, opt_state, grads)
+            _tick(bar, history[-1])
+        history.append(float(_value_and_grad(model, free, data, fixed_states)[0]))
+        converged = True
+    if bar is not None:
+        bar.close()
+    if not np.isfinite(history[-1]):
+        raise FloatingPointError("The fit diverged (non-finite loss): start closer, bound the "
+                                 "parameters with `transforms`, or lower the learning rate.")
+
+    flat = np.concatenate([np.ravel(np.asarray(leaf)) for leaf in jax.tree.leaves(free)])
+    if isinstance(method, str) and np.array_equal(flat, np.asarray(linearization[2])):
+        r, jac_free, _ = linearization  # the last step was taken at (and accepted) this point
+    else:
+        r, jac_free, _ = _residuals_and_jacobian(model, free, data, fixed_states)
+    observed = int(np.sum(np.isfinite(np.asarray(batch.observations))))
+    noise = None if noise_std is None else np.asarray(float(noise_std), batch.q0.dtype)
+    fitted, standard_errors, covariance, residual_std, initial, states = _summary(
+        model, free, fixed_states, r, jac_free, np.asarray(max(observed - flat.size, 1)), noise)
+    return FitResult(fitted, standard_errors, covariance, residual_std,
+                     np.asarray(history), initial, steps, converged, states)
+
+
+@compilation.filter_jit
+def _unconstrained(model, params):
+    """The free parameters (raveled, unconstrained) of the physical ``params``."""
+    return model.unconstrained(params)
+
+
+@compilation.filter_jit
+def _summary(model, free, fixed_states, r, jac_free, dof, noise):
+    """At the optimum, in one program: the physical parameters, their standard errors and
+    covariance ``σ² (JᵀJ)⁺`` (``J`` in physical parameters, ``σ² = Σr²/dof`` unless the noise
+    σ is known), the residual standard deviation and the segment states."""
+    fitted = model.physical(free["params"])
+    x = jnp.concatenate([model.spec.ravel(fitted), ravel_pytree(
+        {k: v for k, v in free.items() if k != "params"})[0]])
+    jac = jac_free @ _free_variables_jacobian(model, x, free)
+    if noise is None:
+        sigma2 = jnp.sum(r**2) / dof
+        residual_std = jnp.sqrt(sigma2)
+    else:
+        sigma2, residual_std = jnp.ones((), r.dtype), noise
+    covariance = sigma2 * jnp.linalg.pinv(jac.T @ jac)
+    p = model.spec.ravel(fitted).shape[0]
+    standard_errors = model.spec.unravel(jnp.sqrt(jnp.diag(covariance))[:p])
+    states = model.states(free, fixed_states)
+    initial = (states[0][:, 0], states[1][:, 0])
+    return fitted, standard_errors, covariance[:p, :p], residual_std, initial, states
+
+
+def _tick(bar, loss):
+    if bar is not None:
+        bar.update(1)
+        bar.set_postfix(loss=loss)
+
+
+def _progress_bar(total, enabled):
+    if not enabled:
+        return None
+    try:
+        from tqdm.auto import tqdm
+    except ImportError as error:  # pragma: no cover - depends on the environment
+        raise ImportError("progress=True needs tqdm: pip install tqdm") from error
+    return tqdm(total=total, desc="jaxlag.fit")
+
+
+def least_squares_loss(system, params: dict, experiments, *, observe: Callable | None = None,
+                       args: dict | None = None, noise_std: float = 1.0,
+                       simulate_kwargs: dict | None = None):
+    """The fit's loss ``½ Σ r²`` at physical ``params`` (single shooting, known initial states).
+
+    Differentiable with ``jax.grad`` (the default adjoint of :func:`~jaxlag.simulate`) and
+    ``jax.jacfwd`` (pass ``simulate_kwargs={"adjoint": diffrax.ForwardMode()}``); useful to check
+    gradients or to drive your own optimizer.
+    """
+    batch = _stack(experiments)
+    observe = wrap_state_function(observe or _observe_coordinates, "observation function")
+    simulate_kwargs = dict(simulate_kwargs or {})
+    adjoint = simulate_kwargs.pop("adjoint", ForwardSensitivities())
+    simulate_kwargs.setdefault("stepsize_controller",
+                               diffrax.PIDController(rtol=1e-10, atol=1e-10))
+    spec = _ParamSpec(tuple(params), tuple(jnp.shape(v) for v in params.values()))
+    model = _Model(system, observe, {}, spec, 1, False,
+                   tuple(sorted(simulate_kwargs.items(), key=lambda kv: kv[0])))
+    data = {"fixed": dict(args or {}), "observations": batch.observations,
+            "noise": noise_std, "ts_seg": batch.ts[:, None, :], "continuity_weight": 0.0}
+    free = {"params": spec.ravel({k: jnp.asarray(v, float) for k, v in params.items()})}
+    r = model.residuals(free, data, (batch.q0[:, None], batch.qd0[:, None]), adjoint)
+    return 0.5 * jnp.sum(r**2)

@@ -1,0 +1,483 @@
+"""``simulate``: integrate a :class:`~jaxlag.System` with ``diffrax.diffeqsolve``."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools as ft
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _compile as compilation
+from . import _errors as failures
+from ._solver.guard import guard, saving_guard_state
+from ._solver import tangent_solve
+from ._misc import is_concrete
+from ._checks import validate_initial_state
+from ._tolerances import default_constraint_tolerance, default_solver_tolerance
+from ._conventions import as_array_leaves
+from ._mechanics.constant_mass import with_constant_mass
+from ._conventions import as_float_state, as_jax_array
+from ._events import Event, default_root_finder, solve_segments
+from ._vector_field import EquationsOfMotion
+from ._adjoint import (
+    ForwardSensitivities,
+    call_with_forward_sensitivities,
+    captures_traced_values,
+    trace_outputs,
+)
+from ._stabilization import (
+    Baumgarte,
+    Projection,
+    stages_for_adjoint,
+    stages_for_forward_mode,
+    wrap_for_projection,
+)
+from ._solver.step_once import StepOnce
+from ._system import System
+from ._trajectory import Trajectory
+
+_AUTO = "auto"
+
+
+def _save_times_message(ts) -> str | None:
+    """Why the (host, possibly batched) save times are unusable, or None."""
+    ts = np.asarray(ts)
+    flat = ts.reshape(-1, ts.shape[-1]) if ts.ndim else ts.reshape(1, 1)
+    for row in flat:
+        steps = np.diff(row)
+        if not np.all(steps > 0):
+            k = int(np.argmax(~(steps > 0)))
+            return (f"ts must be strictly increasing and finite; ts[{k}] = {row[k]:g} is followed "
+                    f"by ts[{k + 1}] = {row[k + 1]:g}.")
+    return None
+
+
+_SAVE_TIMES = failures.Report(_save_times_message, ValueError)
+_SAVE_Y = diffrax.SubSaveAt(t1=True).fn  # diffrax's default: save the state as it is
+
+
+def _as_time(t, dtype):
+    """A time as a 0-d array; concrete values stay on the host (NumPy) until the compiled call,
+    which transfers them with the other inputs instead of one eager device operation each."""
+    if isinstance(t, jax.Array):  # also every tracer
+        return jnp.asarray(t, dtype=dtype)
+    return np.asarray(t, dtype=dtype)
+
+
+def _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection, adjoint):
+    """What the solver loop integrates: ``(system, solver, term)`` with a state-independent
+    ``M`` found and inverted once (:mod:`jaxlag.constant_mass`) and the solver wrapped for the
+    projection."""
+    # A state-independent M (Cartesian particles) is inverted once here, not at every step.
+    fast = with_constant_mass(system, q0, qd0, t0, args)
+    if projection is not None:
+        solver = wrap_for_projection(solver, fast, projection, adjoint)
+    return fast, solver, diffrax.ODETerm(EquationsOfMotion(fast, baumgarte))
+
+
+def _integrate(term, solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, event,
+               max_steps, progress_meter, with_tangents=False):
+    """``diffrax.diffeqsolve`` without diffrax's exceptions: failures are recorded (:mod:`jaxlag.failures`).
+    ``with_tangents``: ``solver`` is a :class:`~jaxlag.tangent_solve.TangentSolver` and ``y0``
+    carries tangents, which the (guarded) ``controller`` is kept from seeing."""
+    if with_tangents:
+        controller = tangent_solve.primal_step_sizes(controller)
+    return diffrax.diffeqsolve(
+        term, solver, t0, t1, dt0, y0, args,
+        saveat=saving_guard_state(saveat),
+        stepsize_controller=controller,
+        adjoint=adjoint,
+        event=event,
+        max_steps=max_steps,
+        throw=False,
+        progress_meter=progress_meter,
+    )
+
+
+def _finish(system, fast, projection, solution, ys, t0, t1, q0, qd0, args, max_steps):
+    """The :class:`Trajectory` of a solve whose saved states are ``ys``."""
+    q, qd = ys
+    if projection is not None:
+        # Saved values between steps come from the solver's interpolant: project them too.
+        q, qd = jax.vmap(lambda t, x, v: projection(fast, x, v, t, args))(solution.ts, q, qd)
+        # Saves the run did not reach (a failure, a terminal event) stay inf, not NaN.
+        reached = jnp.isfinite(solution.ts)[:, None]
+        q, qd = jnp.where(reached, q, jnp.inf), jnp.where(reached, qd, jnp.inf)
+    failure = failures.from_solution(solution, t0, t1, q0, qd0, solution.ts, q, qd, max_steps)
+    return Trajectory.from_states(
+        system, solution.ts, q, qd, args, stats=solution.stats, result=solution.result,
+        failure=failure,
+    )
+
+
+@compilation.filter_jit
+def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat, max_steps,
+           adjoint, event, progress_meter, baumgarte, projection, check, tolerance):
+    system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation
+    if check:
+        q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
+    solver = stages_for_adjoint(solver, adjoint)  # diffrax does not see it through StepOnce
+    fast, solver, term = _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection,
+                                  adjoint)
+    solver = StepOnce(solver)
+    # Failures are recorded (jaxlag.failures), not thrown by diffrax: simulate raises with the
+    # numbers and a diagnosis instead of "max_steps reached" after 65,536 rejected NaN steps.
+    controller = guard(stepsize_controller)
+    solution = _integrate(term, solver, t0, t1, dt0, (q0, qd0), args, saveat, controller,
+                          adjoint, event, max_steps, progress_meter)
+    return _finish(system, fast, projection, solution, solution.ys, t0, t1, q0, qd0, args,
+                   max_steps)
+
+
+def _user_functions(inputs):
+    """Every function of the system (Lagrangian, constraints, dissipation, forces) evaluated
+    once at the initial state, for :func:`captures_traced_values`: the solver loop calls
+    nothing else that a user wrote (the solver, controller and projection are diffrax's and
+    jaxlag's modules, whose arrays are inputs, not captured values)."""
+    system, q0, qd0, t0 = inputs[:4]
+    args = inputs[7]
+    state = {"lagrangian": (q0, qd0), "holonomic": (q0,), "velocity_constraints": (q0, qd0),
+             "dissipation": (q0, qd0), "forces": (q0, qd0)}
+    return [getattr(system, name)(*values, t=t0, args=args) for name, values in state.items()
+            if getattr(system, name) is not None]
+
+
+@compilation.filter_jit
+def _solve_with_tangents(run, static, primals, tangents, axes, structure):
+    """The solve of :func:`_solve` (``run``'s, not segmented) and its derivatives along k
+    directions in one solver loop (:mod:`jaxlag.tangent_solve`): ``(outputs, tangents,
+    rest)`` as ``jax.vmap(jax.jvp(...))`` of ``run`` gives them (:mod:`jaxlag.sensitivities`),
+    the outputs' inexact leaves, their k tangents (leading axis) and the other leaves.
+
+    ``primals``: the inexact leaves of the inputs (structure ``structure``, the rest in
+    ``static``); ``tangents``: one per leaf, k leading where ``axes`` says 0, else not batched.
+    Only the inputs that the solver steps see may be perturbed (not times, not the controller):
+    :meth:`_Run.solves_with_tangents` decides."""
+    leaves = jax.tree.leaves(primals)
+    axes = list(axes)
+
+    def inputs_of(values):
+        return eqx.combine(jax.tree.unflatten(structure, values), static)
+
+    (system, q0, qd0, t0, t1, _, dt0, args, saveat, solver, stepsize_controller, baumgarte,
+     projection, _, _) = inputs_of(leaves)
+    system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation
+    forward = diffrax.ForwardMode()
+
+    def prepared(values):
+        system, q0, qd0, t0, _, _, _, args, _, solver, _, baumgarte, projection, _, _ = \
+            inputs_of(values)
+        solver = stages_for_forward_mode(solver)
+        _, solver, term = _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection,
+                                   forward)
+        return tangent_solve.partition_inexact((solver, term, (q0, qd0), args))
+
+    pieces, piece_tangents, piece_static = tangent_solve.push(prepared, (leaves,), (tangents,),
+                                                              in_axes=(axes,))
+    solver, term, y0, _ = eqx.combine(pieces, piece_static)
+    solver_tangent, term_tangent, y0_tangent, args_tangent = piece_tangents
+    # The projected solver's system (M found constant, from the parameters) has tangents too.
+    projected = getattr(solver_tangent, "system", None) if projection is not None else None
+    stepper = tangent_solve.TangentSolver(solver, projected)
+    controller = guard(stepsize_controller)
+    variational = tangent_solve.TangentTerm(term, term_tangent, args_tangent)
+    solution = _integrate(variational, stepper, t0, t1, dt0, (y0, y0_tangent), args, saveat,
+                          controller, forward, None, run.max_steps, run.progress_meter,
+                          with_tangents=True)
+    ys, ys_tangent = solution.ys
+    ys_tangent = jax.tree.map(lambda x: jnp.moveaxis(x, 1, 0), ys_tangent)  # (k, T, ...)
+    term_dyn, term_static = tangent_solve.partition_inexact(term)
+
+    def finished(values, term_values, ys):
+        system, q0, qd0, t0, t1, _, _, args, _, _, _, _, projection, _, _ = inputs_of(values)
+        fast = eqx.combine(term_values, term_static).vector_field.system
+        trajectory = _finish(system, fast, projection, solution, ys, t0, t1, q0, qd0, args,
+                             run.max_steps)
+        return eqx.partition(trajectory, eqx.is_inexact_array)
+
+    return tangent_solve.push(finished, (leaves, term_dyn, ys),
+                              (tangents, term_tangent, ys_tangent), in_axes=(axes, 0, 0))
+
+
+class _Run(eqx.Module):
+    """The simulation as a function of its inputs and the adjoint: ``run(inputs, adjoint)``.
+
+    A module, not a closure, so that it compares equal across ``simulate`` calls with the same
+    options: the forward-sensitivity program of ``jax.grad`` is compiled once and reused.
+    """
+
+    segmented: bool = eqx.field(static=True)
+    max_steps: Any = eqx.field(static=True)
+    progress_meter: Any
+    max_segments: int = eqx.field(static=True)
+    event_root_finder: Any
+    check: bool = eqx.field(static=True)
+    tolerance: Any
+
+    def may_solve_with_tangents(self, inputs) -> bool:
+        """Whether :meth:`solves_with_tangents` holds for some perturbed inputs (those of the
+        steps): the run's options allow the tangent solve."""
+        return self.solves_with_tangents(inputs, None)
+
+    def solves_with_tangents(self, inputs, perturbed) -> bool:
+        """Whether :func:`_solve_with_tangents` gives this run's forward sensitivities when the
+        inexact input leaves flagged in ``perturbed`` (a list in leaf order) are differentiated:
+        a plain solve (no events), an explicit Runge–Kutta solver, a guarded controller, states
+        saved as they are, and no perturbed time, save time, solver, controller or progress
+        meter."""
+        (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller, baumgarte,
+         projection, events, event) = inputs
+        if self.segmented or event is not None or events:
+            return False
+        # An explicit Runge–Kutta method (Euler included), not wrapped: its step of the
+        # variational equations is exactly the jvp of its step. (A wrapper may transform the
+        # state nonlinearly; other solvers take the general path.)
+        explicit = (isinstance(solver, (diffrax.AbstractERK, diffrax.Euler))
+                    and not isinstance(solver, diffrax.AbstractWrappedSolver))
+        if not explicit or isinstance(stepsize_controller, diffrax.StepTo):
+            return False
+        subs = jax.tree.leaves(saveat.subs, is_leaf=lambda x: isinstance(x, diffrax.SubSaveAt))
+        if saveat.dense or saveat.solver_state or saveat.made_jump or \
+                any(sub.fn is not _SAVE_Y for sub in subs):
+            return False
+        if perturbed is None:
+            return True
+        counts = [len(jax.tree.leaves(eqx.filter(x, eqx.is_inexact_array))) for x in inputs]
+        stepped = (True, True, True, False, False, False, False, True, False, False, False, True,
+                   True, False, False)  # system, q0, qd0, args, baumgarte, projection
+        flags = iter(perturbed)
+        return all(not next(flags) or ok for ok, count in zip(stepped, counts)
+                   for _ in range(count))
+
+    def push_along(self, primals, static, tangents, axes, structure):
+        """``(outputs, tangents, rest)`` along k directions: :func:`_solve_with_tangents`."""
+        return _solve_with_tangents(self, static, primals, tangents, axes, structure)
+
+    def push_along_shapes(self, primals, static, tangents, axes, structure):
+        """``jax.eval_shape`` of :meth:`push_along`."""
+        return eqx.filter_eval_shape(_solve_with_tangents, self, static, primals, tangents, axes,
+                                     structure)
+
+    def __call__(self, inputs, adjoint):
+        (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller, baumgarte,
+         projection, events, event) = inputs
+        if self.segmented:
+            ts_out, q, qd, active, log, failure = solve_segments(
+                system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_controller,
+                self.max_steps, adjoint, self.progress_meter, baumgarte, projection, events,
+                self.max_segments, self.event_root_finder, self.check, self.tolerance,
+            )
+            return Trajectory.from_states(system, ts_out, q, qd, args, active=active, events=log,
+                                          failure=failure)
+        return _solve(
+            system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat,
+            self.max_steps, adjoint, event, self.progress_meter, baumgarte, projection, self.check,
+            self.tolerance,
+        )
+
+
+def simulate(
+    system: System,
+    q0,
+    qd0,
+    ts=None,
+    *,
+    t0=None,
+    t1=None,
+    args: Any = None,
+    solver: diffrax.AbstractSolver | None = None,
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    dt0=None,
+    saveat: diffrax.SaveAt | None = None,
+    max_steps: int | None = 2**16,
+    adjoint: diffrax.AbstractAdjoint | ForwardSensitivities | None = None,
+    event: diffrax.Event | None = None,
+    throw: bool = True,
+    progress_meter: diffrax.AbstractProgressMeter | None = None,
+    baumgarte: Baumgarte | None = None,
+    projection: Projection | None | str = _AUTO,
+    check_initial_state: bool = True,
+    check_times: bool = True,
+    constraint_tolerance: float | None = None,
+    events=(),
+    max_segments: int = 8,
+    event_root_finder=None,
+) -> Trajectory:
+    """Integrate the equations of motion of ``system`` from ``(q0, qd0)``.
+
+    **Arguments:**
+
+    - ``system``: a :class:`~jaxlag.System`.
+    - ``q0``, ``qd0``: initial coordinates and velocities, 1-D arrays of the same length n.
+    - ``ts``: increasing save times; the integration runs from ``ts[0]`` to ``ts[-1]``.
+      Alternatively give ``t0``, ``t1`` and a ``diffrax.SaveAt``.
+    - ``args``: parameters (any pytree) passed to every user function that declares ``args``.
+    - ``check_times``: traced ``ts`` (inside ``jit``/``vmap``) are checked to increase inside the
+      compiled program (and diffrax checks its save times there too). Pass ``False`` when you
+      have checked them yourself, as ``jl.fit`` does once on the host: the program then has no
+      host callback for them, so JAX's persistent cache can store it. Concrete ``ts`` are
+      always checked, on the host.
+
+    Every diffrax option passes through unchanged: ``solver`` (default ``diffrax.Tsit5()``),
+    ``stepsize_controller`` (default ``diffrax.PIDController(rtol=1e-10, atol=1e-10)``, in
+    float32 ``1.2e-5``; with a
+    ``ConstantStepSize`` give ``dt0``), ``dt0`` (default: chosen by the controller), ``saveat``,
+    ``max_steps``, ``adjoint``, ``event``, ``throw`` and ``progress_meter``. The default adjoint,
+    :class:`~jaxlag.ForwardSensitivities`, gives ``jax.grad`` by forward sensitivities when at most
+    10 scalars are differentiated and by diffrax's ``RecursiveCheckpointAdjoint`` otherwise
+    (:mod:`jaxlag.sensitivities`); for ``jax.jacfwd`` pass ``diffrax.ForwardMode()``.
+
+    Constrained systems:
+
+    - ``projection``: a :class:`~jaxlag.Projection` applied after every accepted step and at the
+      saved times (default for constrained systems), or ``None``.
+    - ``baumgarte``: optional :class:`~jaxlag.Baumgarte` feedback in the acceleration constraint.
+    - ``check_initial_state``: raise if ``(q0, qd0)`` is non-finite, has a singular mass matrix,
+      redundant constraints, or is off the constraint manifold by more than
+      ``constraint_tolerance`` (default 1e-8 in float64, ``√ε`` = 3.5e-4 in float32; see
+      :func:`~jaxlag.consistent_initial_state`). Non-finite parameters in ``args`` are an error.
+    - ``throw``: on a run-time failure (non-finite equations of motion, a collapsing step size,
+      ``max_steps``, ``max_segments``) raise :class:`~jaxlag.SimulationError` with the numbers
+      and a diagnosis (:mod:`jaxlag.failures`); with ``False`` return the trajectory, whose
+      ``failure`` record says what happened (``traj.raise_if_failed()`` raises later).
+
+    Events and unilateral constraints (see :mod:`jaxlag.events`):
+
+    - ``events``: :class:`~jaxlag.Event` conditions (terminal or recorded).
+    - If the system has ``unilateral`` constraints or ``events`` are given, the motion is
+      integrated in at most ``max_segments`` segments between switches, each event located by
+      ``event_root_finder`` (default ``optimistix.Newton(rtol=1e-13, atol=1e-13)``); the
+      returned trajectory has ``events`` (an :class:`~jaxlag.EventLog`) and ``active`` set.
+      This mode needs ``ts``.
+
+    Returns a :class:`~jaxlag.Trajectory`.
+    """
+    q0, qd0 = as_float_state(q0, qd0)
+    args = as_array_leaves(args)
+    user_saveat = saveat is not None
+    if ts is not None:
+        ts = as_jax_array(ts, q0.dtype)
+        if ts.ndim != 1 or ts.shape[0] < 1:
+            raise ValueError(f"ts must be a non-empty 1-D array of save times; got shape {ts.shape}.")
+        # Concrete save times are checked and sliced on the host: no eager device operations.
+        ends = np.asarray(ts) if is_concrete(ts) else ts
+        if is_concrete(ts):
+            text = _save_times_message(ends)
+            if text is not None:
+                raise ValueError(text)
+        elif check_times:  # traced save times: the same check, compiled in
+            ts = failures.raise_from_program(ts, ~jnp.all(jnp.diff(ts) > 0), _SAVE_TIMES, ts)
+        t0 = ends[0] if t0 is None else t0
+        t1 = ends[-1] if t1 is None else t1
+        if saveat is None:
+            saveat = diffrax.SaveAt(ts=ts)
+    if t0 is None or t1 is None:
+        raise ValueError("Give save times `ts`, or `t0` and `t1` (with a diffrax.SaveAt).")
+    if saveat is None:
+        saveat = diffrax.SaveAt(t1=True)
+    t0, t1 = _as_time(t0, q0.dtype), _as_time(t1, q0.dtype)
+    if solver is None:
+        solver = diffrax.Tsit5()
+    if stepsize_controller is None:
+        tol = default_solver_tolerance(q0.dtype)
+        stepsize_controller = diffrax.PIDController(rtol=tol, atol=tol)
+    if constraint_tolerance is None:
+        constraint_tolerance = default_constraint_tolerance(q0.dtype)
+    if adjoint is None:
+        adjoint = ForwardSensitivities()
+    if not isinstance(adjoint, (diffrax.AbstractAdjoint, ForwardSensitivities)):
+        raise TypeError(
+            f"adjoint must be a diffrax adjoint or jl.ForwardSensitivities(); got {adjoint!r}."
+        )
+    if progress_meter is None:
+        progress_meter = diffrax.NoProgressMeter()
+    if isinstance(projection, str):
+        if projection != _AUTO:
+            raise ValueError(f"projection must be a jl.Projection, None or 'auto'; got {projection!r}.")
+        projection = Projection() if system.is_constrained else None
+    if projection is not None and not system.is_constrained:
+        projection = None
+    if isinstance(events, Event):
+        events = (events,)
+    events = tuple(events)
+    for e in events:
+        if not isinstance(e, Event):
+            raise TypeError(f"events must be jl.Event instances; got {type(e).__name__}.")
+    segmented = bool(events) or bool(system.unilateral)
+    if segmented and (ts is None or event is not None or user_saveat):
+        raise ValueError(
+            "Unilateral constraints and jl.Event need save times `ts`, and neither a diffrax "
+            "`event` (use jl.Event for conditions) nor a custom `saveat`."
+        )
+    check_in_jit = check_initial_state
+    if check_initial_state and is_concrete((q0, qd0, t0, args)):
+        # Concrete inputs: check eagerly, so that errors carry the numbers and constraint names.
+        # (Returns the state threaded through compiled checks if the flags turn out traced.)
+        q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, constraint_tolerance)
+        check_in_jit = False
+    if segmented and event_root_finder is None:
+        event_root_finder = default_root_finder()
+
+    run = _Run(segmented, max_steps, progress_meter, int(max_segments), event_root_finder,
+               check_in_jit, constraint_tolerance)
+
+    inputs = (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller,
+              baumgarte, projection, events, event)
+    if isinstance(adjoint, ForwardSensitivities) and not is_concrete(inputs):
+        # One abstract trace: does a user function close over a traced value (a parameter of the
+        # caller's grad captured in L)? A custom_vjp cannot see it, so the checkpointed adjoint
+        # then differentiates the simulation as it stands. The trace also gives the output
+        # shapes the forward-sensitivity rule needs.
+        # The initial state is checked inside the custom_vjp, before the run, where the values
+        # are concrete unless the caller itself is being traced: on the host then, and the
+        # program of the forward sensitivities carries no check (JAX can cache it on disk).
+        unchecked = dataclasses.replace(run, check=False)
+        if unchecked.may_solve_with_tangents(inputs):
+            # jax.grad will use the one-loop tangent solve, which needs no output shapes: the
+            # test traces the user's functions, not the solver loop.
+            captured, shapes = captures_traced_values(_user_functions, inputs), None
+        else:
+            captured, shapes = trace_outputs(unchecked, inputs, adjoint.inner)
+        if captured:
+            trajectory = run(inputs, adjoint.fallback)
+        else:
+            # Failures are raised inside the custom_vjp, where the record is concrete (host-side
+            # check, no compiled check) unless the caller itself is being traced.
+            finish = (lambda tr: _raise_if_failed(tr, tr.system, tr.args)) if throw else None
+            prepare = None
+            if run.check:
+                prepare = ft.partial(_checked_initial_state, tolerance=constraint_tolerance)
+            return call_with_forward_sensitivities(unchecked, inputs, adjoint, shapes, finish,
+                                                   prepare)
+    elif isinstance(adjoint, ForwardSensitivities):
+        # No traced input; a user function may still close over a value of the caller's grad,
+        # which the fallback (reverse-mode) adjoint differentiates. Outside every transformation
+        # nothing can be captured: the plain loop of the inner adjoint traces faster than the
+        # checkpointed one (and is the one jax.grad's closure test and tangent solve share).
+        plain = compilation.no_transformation_active()
+        trajectory = run(inputs, adjoint.inner if plain else adjoint.fallback)
+    else:
+        trajectory = run(inputs, adjoint)
+    return _raise_if_failed(trajectory, system, args) if throw else trajectory
+
+
+def _checked_initial_state(inputs, tolerance):
+    """``inputs`` with ``(q0, qd0)`` checked (:func:`~jaxlag.checks.validate_initial_state`:
+    raises here for concrete values, compiles the check in otherwise)."""
+    system, q0, qd0, t0, _, _, _, args = inputs[:8]
+    q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
+    return (system, q0, qd0) + tuple(inputs[3:])
+
+
+def _raise_if_failed(trajectory: Trajectory, system: System, args) -> Trajectory:
+    """Eagerly (concrete result: synchronous, full diagnosis) or compiled into the program."""
+    if is_concrete(trajectory.failure):
+        failures.raise_if_failed(trajectory.failure, system, args)
+        return trajectory
+    q = failures.error_if_failed(trajectory.failure, trajectory.q)
+    return eqx.tree_at(lambda tr: tr.q, trajectory, q)

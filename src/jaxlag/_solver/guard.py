@@ -1,0 +1,117 @@
+"""A step-size controller guard: stop a solve at a non-finite step of round-off size.
+
+Wraps the user's controller (:func:`guard`); the guard's state records the time reached, the last
+step size and the last accepted state, which the failure record (``jaxlag._errors``) reports.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .forwarding import ForwardingAdaptiveController
+
+_ULPS = 64  # a step at most this many ulps of the time scale is at round-off
+
+
+class GuardState(eqx.Module):
+    """What :class:`FiniteStepGuard` carries from step to step (and returns at the end)."""
+
+    inner: Any
+    t: Any  # time reached: end of the last accepted step
+    dt: Any  # size of the last attempted step
+    q: Any  # last accepted state
+    qd: Any
+    failed: Any  # bool: the guard stopped the solve
+    nonfinite: Any  # bool: ... because a step was non-finite
+    scale: Any  # time scale of the solve: max(|t0|, |t1|, t1 − t0)
+
+
+def _guarded_init(controller, terms, t0, t1, y0, dt0, args, func, error_order):
+    tnext, inner = controller.init(terms, t0, t1, y0, dt0, args, func, error_order)
+    q, qd = y0
+    t0 = jnp.asarray(t0, q.dtype)
+    scale = jnp.maximum(jnp.maximum(jnp.abs(t0), jnp.abs(t1)), jnp.abs(t1 - t0))
+    record = jax.lax.stop_gradient((t0, jnp.asarray(tnext - t0, q.dtype), q, qd,
+                                    jnp.asarray(scale, q.dtype)))
+    state = GuardState(inner, *record[:4], jnp.asarray(False), jnp.asarray(False), record[4])
+    return tnext, state
+
+
+def _guarded_adapt(controller, adaptive, t0, t1, y0, y1_candidate, args, y_error, error_order,
+                   state):
+    keep, tprev, tnext, jump, inner, result = controller.adapt_step_size(
+        t0, t1, y0, y1_candidate, args, y_error, error_order, state.inner
+    )
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(y1_candidate)]))
+    dt = t1 - t0
+    q0, qd0 = y0
+    if adaptive:
+        # Only at round-off step sizes is a failed step final: larger NaN steps (overshooting
+        # into a region where L is undefined) are retried smaller, as diffrax does.
+        tiny = dt <= _ULPS * jnp.finfo(q0.dtype).eps * state.scale
+        fail = tiny & (~finite | ~keep | (t1 <= t0))
+    else:
+        fail = ~finite
+    keep = keep & ~fail
+    result = diffrax.RESULTS.where(fail, diffrax.RESULTS.dt_min_reached, result)
+    # The record is for messages, never differentiated: no tangents carried through the loop.
+    record = jax.lax.stop_gradient((jnp.where(keep, t1, t0).astype(q0.dtype),
+                                    jnp.asarray(dt, q0.dtype), q0, qd0))
+    new = GuardState(inner, *record, fail, fail & ~finite, state.scale)
+    return keep, tprev, tnext, jump, new, result
+
+
+class FiniteStepGuard(ForwardingAdaptiveController):
+    """Wraps an adaptive controller: stop at a non-finite step of round-off size (see module)."""
+
+    controller: diffrax.AbstractAdaptiveStepSizeController
+
+    def wrap(self, direction):
+        return FiniteStepGuard(self.controller.wrap(direction))
+
+    def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        return _guarded_init(self.controller, terms, t0, t1, y0, dt0, args, func, error_order)
+
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order,
+                        controller_state):
+        return _guarded_adapt(self.controller, True, t0, t1, y0, y1_candidate, args, y_error,
+                              error_order, controller_state)
+
+
+class FiniteFixedStepGuard(diffrax.AbstractStepSizeController):
+    """Wraps a non-adaptive controller (constant steps): stop at the first non-finite step."""
+
+    controller: diffrax.AbstractStepSizeController
+
+    def wrap(self, direction):
+        return FiniteFixedStepGuard(self.controller.wrap(direction))
+
+    def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        return _guarded_init(self.controller, terms, t0, t1, y0, dt0, args, func, error_order)
+
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order,
+                        controller_state):
+        return _guarded_adapt(self.controller, False, t0, t1, y0, y1_candidate, args, y_error,
+                              error_order, controller_state)
+
+
+def guard(controller):
+    """The controller wrapped in the matching guard (``StepTo`` stays as it is: diffrax ends its
+    loop by counting its steps; a non-finite result is then caught on the saved states)."""
+    if isinstance(controller, (FiniteStepGuard, FiniteFixedStepGuard)):
+        controller = controller.controller
+    if isinstance(controller, diffrax.StepTo):
+        return controller
+    if isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
+        return FiniteStepGuard(controller)
+    return FiniteFixedStepGuard(controller)
+
+
+def saving_guard_state(saveat: diffrax.SaveAt) -> diffrax.SaveAt:
+    """``saveat`` that also returns the final controller state (the guard's record)."""
+    return eqx.tree_at(lambda s: s.controller_state, saveat, True)

@@ -1,0 +1,251 @@
+"""``System``: a Lagrangian with its constraints and non-conservative forces, as a pytree."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from . import _compile as compilation
+from ._mechanics import constraints as _constraints
+from ._mechanics import kkt as _kkt
+from ._mechanics import lagrangian as _mechanics
+from ._conventions import (
+    UserFunction,
+    as_array_leaves,
+    wrap_configuration_function,
+    wrap_state_function,
+)
+
+
+class System(eqx.Module):
+    r"""A mechanical system: ``L(q, q̇, t)`` plus constraints and non-conservative forces.
+
+    Every function follows one convention (see :mod:`jaxlag.conventions`): state positionally,
+    ``t`` and ``args`` by keyword if declared.
+
+    **Arguments:**
+
+    - ``lagrangian``: ``L(q, qd, [t], [args]) -> scalar``.
+    - ``holonomic``: ``f(q, [t], [args]) -> (m_h,)``; the motion keeps ``f = 0``.
+    - ``velocity_constraints``: ``g(q, qd, [t], [args]) -> (m_v,)``, affine in ``qd``
+      (Pfaffian ``A(q, t) q̇ + b(q, t) = 0``, e.g. rolling without slipping).
+    - ``dissipation``: Rayleigh function ``R(q, qd, [t], [args]) -> scalar``; force ``−∂R/∂q̇``.
+    - ``forces``: external generalized forces ``Q(q, qd, [t], [args]) -> (n,)``.
+    - ``least_squares``: accept redundant constraints (singular ``J M⁻¹ Jᵀ``) and report the
+      minimum-norm multipliers instead of raising.
+    - ``diagonal_mass``: declare ``M`` diagonal (Cartesian particles): ``M⁻¹`` is then a division,
+      not a Cholesky factorization. Checked at the initial state.
+    - ``unilateral``: indices of holonomic constraints that are one-sided, ``f_i(q, t) ≥ 0``
+      with ``λ_i ≥ 0`` while in contact (a particle on the outside of a sphere ``r − R ≥ 0``,
+      a string ``l − r ≥ 0``). :func:`~jaxlag.simulate` releases such a constraint when its
+      multiplier crosses zero and re-engages it (perfectly plastic impact) when ``f_i`` returns
+      to zero.
+
+    Equations of motion (sign convention of the seeds):
+    ``d/dt ∂L/∂q̇ − ∂L/∂q = Jᵀλ + Aᵀμ − ∂R/∂q̇ + Q``, i.e. ``M q̈ = F + Jᵀλ + Aᵀμ``.
+    """
+
+    lagrangian: UserFunction
+    holonomic: UserFunction | None
+    velocity_constraints: UserFunction | None
+    dissipation: UserFunction | None
+    forces: UserFunction | None
+    least_squares: bool = eqx.field(static=True)
+    unilateral: tuple = eqx.field(static=True)
+    diagonal_mass: bool = eqx.field(static=True)
+    # Set by simulate while tracing when M does not depend on the state (jaxlag.constant_mass).
+    constant_mass: Any = None
+
+    def __init__(
+        self,
+        lagrangian: Callable,
+        holonomic: Callable | None = None,
+        *,
+        velocity_constraints: Callable | None = None,
+        dissipation: Callable | None = None,
+        forces: Callable | None = None,
+        least_squares: bool = False,
+        unilateral=(),
+        diagonal_mass: bool = False,
+    ):
+        self.lagrangian = wrap_state_function(lagrangian, "lagrangian")
+        self.holonomic = wrap_configuration_function(holonomic, "holonomic constraint function")
+        self.velocity_constraints = wrap_state_function(
+            velocity_constraints, "velocity constraint function"
+        )
+        self.dissipation = wrap_state_function(dissipation, "dissipation function")
+        self.forces = wrap_state_function(forces, "force function")
+        self.least_squares = bool(least_squares)
+        self.diagonal_mass = bool(diagonal_mass)
+        self.constant_mass = None
+        if isinstance(unilateral, int):
+            unilateral = (unilateral,)
+        self.unilateral = tuple(sorted({int(i) for i in unilateral}))
+        if self.unilateral and holonomic is None:
+            raise ValueError("unilateral names holonomic constraints, but no holonomic function was given.")
+
+    # ----------------------------------------------------------------- structure and checks
+    @property
+    def is_constrained(self) -> bool:
+        return self.holonomic is not None or self.velocity_constraints is not None
+
+    def num_holonomic(self, q, t=0.0, args=None) -> int:
+        """Number of holonomic constraints ``m_h`` (static, from shapes alone)."""
+        if self.holonomic is None:
+            return 0
+        shape = jax.eval_shape(lambda x: _constraints.holonomic_residual(self, x, t, args), q)
+        return shape.shape[0]
+
+    def check(self, q, qd, t=0.0, args=None) -> None:
+        """Raise a clear error if shapes or output shapes are wrong (costs no computation)."""
+        q = jnp.asarray(q)
+        qd = jnp.asarray(qd)
+        if q.ndim != 1:
+            raise ValueError(f"q must be a 1-D array of generalized coordinates; got shape {q.shape}.")
+        if qd.shape != q.shape:
+            raise ValueError(
+                f"q and qd must have the same shape (n,); got q {q.shape} and qd {qd.shape}."
+            )
+        if not jnp.issubdtype(q.dtype, jnp.floating) or not jnp.issubdtype(qd.dtype, jnp.floating):
+            raise TypeError(f"q and qd must be floating point; got {q.dtype} and {qd.dtype}.")
+        n = q.shape[0]
+        t = jnp.asarray(t, dtype=q.dtype)
+
+        def shape_of(fn, *state):
+            return jax.eval_shape(lambda *s: fn(*s, t=t, args=args), *state).shape
+
+        out = shape_of(self.lagrangian, q, qd)
+        if out != ():
+            raise ValueError(
+                f"The Lagrangian must return a scalar; it returned shape {out}. "
+                "(Did you forget a sum, e.g. 0.5 * m * jnp.sum(qd**2)?)"
+            )
+        if self.holonomic is not None:
+            out = shape_of(self.holonomic, q)
+            if len(out) != 1:
+                raise ValueError(
+                    "The holonomic constraint function must return a 1-D array of shape (m,), one "
+                    f"entry per constraint; it returned shape {out}. Wrap a single constraint as "
+                    "jnp.array([f])."
+                )
+            bad = [i for i in self.unilateral if not 0 <= i < out[0]]
+            if bad:
+                raise ValueError(
+                    f"unilateral={self.unilateral} names constraints {bad}, but the holonomic "
+                    f"function returns only {out[0]} entries."
+                )
+        if self.velocity_constraints is not None:
+            out = shape_of(self.velocity_constraints, q, qd)
+            if len(out) != 1:
+                raise ValueError(
+                    "The velocity constraint function must return a 1-D array of shape (m,) "
+                    f"(A(q, t) q̇ + b(q, t)); it returned shape {out}."
+                )
+        if self.dissipation is not None:
+            out = shape_of(self.dissipation, q, qd)
+            if out != ():
+                raise ValueError(
+                    f"The Rayleigh dissipation function must return a scalar; it returned shape {out}."
+                )
+        if self.forces is not None:
+            out = shape_of(self.forces, q, qd)
+            if out != (n,):
+                raise ValueError(
+                    f"The force function must return generalized forces of shape ({n},), like q; "
+                    f"it returned shape {out}."
+                )
+
+    # ----------------------------------------------------------------- mechanics at a state
+    def _at_state(self, quantity, q, qd, t, args):
+        q, qd = jnp.asarray(q), jnp.asarray(qd)
+        self.check(q, qd, t, args)
+        t = jnp.asarray(t, dtype=jnp.result_type(q.dtype, jnp.float32))
+        args = as_array_leaves(args)
+        out = _evaluate_at_state(quantity, self, q, qd, t, args)
+        if quantity in _SOLVED:
+            # The KKT solve turns a singular M or redundant rows into NaN: say so instead.
+            from ._checks import check_state_result
+
+            out = check_state_result(self, quantity.__name__.strip("_"), out, q, qd, t, args)
+        return out
+
+    def lagrangian_value(self, q, qd, t=0.0, args=None):
+        """``L(q, q̇, t)``."""
+        return self._at_state(_mechanics.lagrangian_value, q, qd, t, args)
+
+    def mass_matrix(self, q, qd, t=0.0, args=None):
+        """``M = ∂²L/∂q̇²``, shape (n, n)."""
+        return self._at_state(_mechanics.mass_matrix, q, qd, t, args)
+
+    def generalized_forces(self, q, qd, t=0.0, args=None):
+        """``F = ∂L/∂q − (∂²L/∂q̇∂q) q̇ − ∂²L/∂q̇∂t − ∂R/∂q̇ + Q``, shape (n,)."""
+        return self._at_state(_mechanics.generalized_forces, q, qd, t, args)
+
+    def momenta(self, q, qd, t=0.0, args=None):
+        """``p = ∂L/∂q̇``."""
+        return self._at_state(_mechanics.momenta, q, qd, t, args)
+
+    def energy(self, q, qd, t=0.0, args=None):
+        """Energy function ``h = q̇·∂L/∂q̇ − L``."""
+        return self._at_state(_mechanics.energy, q, qd, t, args)
+
+    def accelerations(self, q, qd, t=0.0, args=None):
+        """``q̈`` from the (constrained) equations of motion."""
+        return self._at_state(_accelerations, q, qd, t, args)
+
+    def multipliers(self, q, qd, t=0.0, args=None):
+        """Holonomic multipliers ``λ`` (m_h,) in ``M q̈ = F + Jᵀλ + Aᵀμ``."""
+        return self._at_state(_multipliers, q, qd, t, args)
+
+    def velocity_multipliers(self, q, qd, t=0.0, args=None):
+        """Velocity-constraint multipliers ``μ`` (m_v,) in ``M q̈ = F + Jᵀλ + Aᵀμ``."""
+        return self._at_state(_velocity_multipliers, q, qd, t, args)
+
+    def constraint_forces(self, q, qd, t=0.0, args=None):
+        """Generalized constraint forces ``Qᶜ = Jᵀλ + Aᵀμ``, shape (n,)."""
+        return self._at_state(_constraint_forces, q, qd, t, args)
+
+    def constraint_residuals(self, q, qd, t=0.0, args=None):
+        """``(f, ḟ, g)``: holonomic position and velocity residuals, velocity-constraint residual."""
+        return self._at_state(_constraints.constraint_residuals, q, qd, t, args)
+
+    def dissipated_power(self, q, qd, t=0.0, args=None):
+        """``q̇·∂R/∂q̇``: power removed by dissipation."""
+        return self._at_state(_mechanics.dissipated_power, q, qd, t, args)
+
+    def input_power(self, q, qd, t=0.0, args=None):
+        """``q̇·Q``: power delivered by external forces."""
+        return self._at_state(_mechanics.input_power, q, qd, t, args)
+
+
+# Compiled once per (quantity, system, shapes): eager calls of the methods above are fast, and
+# inside a user's jit the call is simply inlined.
+@compilation.filter_jit
+def _evaluate_at_state(quantity, system, q, qd, t, args):
+    return quantity(system, q, qd, t, args)
+
+
+def _accelerations(system, q, qd, t, args):
+    return _kkt.accelerations_and_multipliers(system, q, qd, t, args)[0]
+
+
+def _multipliers(system, q, qd, t, args):
+    return _kkt.accelerations_and_multipliers(system, q, qd, t, args)[1]
+
+
+def _velocity_multipliers(system, q, qd, t, args):
+    return _kkt.accelerations_and_multipliers(system, q, qd, t, args)[2]
+
+
+def _constraint_forces(system, q, qd, t, args):
+    _, lam, mu = _kkt.accelerations_and_multipliers(system, q, qd, t, args)
+    rows, _ = _constraints.constraint_rows(system, q, qd, t, args)
+    return rows.T @ jnp.concatenate([lam, mu])
+
+
+#: Quantities that come out of the KKT solve (checked for finiteness, see ``System._at_state``).
+_SOLVED = (_accelerations, _multipliers, _velocity_multipliers, _constraint_forces)

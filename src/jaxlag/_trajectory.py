@@ -1,0 +1,167 @@
+"""``Trajectory``: the saved states of a simulation and the quantities derived from them."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from . import _compile as compilation
+from ._errors import raise_if_failed
+from ._mechanics import constraints as _constraints
+from ._mechanics import kkt as _kkt
+from ._mechanics import lagrangian as _mechanics
+
+
+def _constraint_forces(system, q, qd, t, args, active):
+    _, lam, mu = _kkt.accelerations_and_multipliers(system, q, qd, t, args, active=active)
+    rows, _ = _constraints.constraint_rows(system, q, qd, t, args)
+    return rows.T @ jnp.concatenate([lam, mu])
+
+
+def _kkt_output(index):
+    def quantity(system, q, qd, t, args, active):
+        return _kkt.accelerations_and_multipliers(system, q, qd, t, args, active=active)[index]
+
+    return quantity
+
+
+def _state_only(fn):
+    return lambda system, q, qd, t, args, active: fn(system, q, qd, t, args)
+
+
+_QUANTITIES = {
+    "accelerations": _kkt_output(0),
+    "multipliers": _kkt_output(1),
+    "velocity_multipliers": _kkt_output(2),
+    "constraint_forces": _constraint_forces,
+    "energy": _state_only(_mechanics.energy),
+    "momenta": _state_only(_mechanics.momenta),
+    "lagrangian": _state_only(_mechanics.lagrangian_value),
+    "constraint_residuals": _state_only(_constraints.constraint_residuals),
+    "dissipated_power": _state_only(_mechanics.dissipated_power),
+    "input_power": _state_only(_mechanics.input_power),
+}
+
+
+@compilation.filter_jit
+def _evaluate(name: str, system_arrays, system_static, t, q, qd, args, active):
+    quantity = _QUANTITIES[name]
+
+    def along_time(arrays, t_, q_, qd_, a_, active_):
+        system = eqx.combine(arrays, system_static)
+        return jax.vmap(lambda s, x, v, m: quantity(system, x, v, s, a_, m))(t_, q_, qd_, active_)
+
+    fn = along_time
+    for _ in range(q.ndim - 2):  # batch dimensions added by vmap-ing simulate
+        fn = jax.vmap(fn)
+    return fn(system_arrays, t, q, qd, args, active)
+
+
+class Trajectory(eqx.Module):
+    """Saved states ``t`` (T,), ``q`` (T, n), ``qd`` (T, n) of a simulation.
+
+    Derived quantities are computed on demand from the saved states, with the same system and
+    parameters, under ``jit`` (inside a user's ``jit`` unused ones cost nothing). Batched
+    trajectories (from ``jax.vmap`` of :func:`~jaxlag.simulate`) carry leading batch axes and
+    their derived quantities do too.
+
+    Multipliers and constraint forces are those of the exact constrained equations at the saved
+    state (without any Baumgarte feedback term), with the convention ``M q̈ = F + Jᵀλ + Aᵀμ``.
+    """
+
+    t: Any
+    q: Any
+    qd: Any
+    args: Any
+    stats: Any
+    result: Any
+    # The system is split so that a Trajectory is a valid output of jax.jit / vmap: its arrays
+    # (e.g. a neural-network Lagrangian's weights) are leaves, its functions static.
+    system_arrays: Any
+    #: Holonomic activity mask (T, m_h) when unilateral constraints switch, else None.
+    active: Any
+    #: :class:`~jaxlag.EventLog` of the switches and events, or None.
+    events: Any
+    #: :class:`jaxlag.failures.Failure`: how the run ended (``code`` 0: completed), or None.
+    failure: Any
+    system_static: Any = eqx.field(static=True)
+
+    @classmethod
+    def from_states(cls, system, t, q, qd, args, stats=None, result=None, active=None,
+                    events=None, failure=None):
+        arrays, static = eqx.partition(system, eqx.is_array)
+        return cls(t, q, qd, args, stats, result, arrays, active, events, failure, static)
+
+    def raise_if_failed(self) -> None:
+        """Raise :class:`jaxlag.SimulationError` with the numbers and a diagnosis if the run
+        did not complete (for a trajectory computed with ``throw=False``, e.g. under ``jit``;
+        call it outside the transformation). Batched trajectories name the failed members."""
+        if self.failure is None:
+            return
+        batched = jnp.ndim(self.failure.code) > 0
+        raise_if_failed(self.failure, None if batched else self.system,
+                        None if batched else self.args)
+
+    @property
+    def system(self):
+        """The :class:`~jaxlag.System` that produced this trajectory."""
+        return eqx.combine(self.system_arrays, self.system_static)
+
+    def _get(self, name):
+        return _evaluate(
+            name, self.system_arrays, self.system_static, self.t, self.q, self.qd, self.args,
+            self.active,
+        )
+
+    @property
+    def accelerations(self):
+        """``q̈`` (T, n)."""
+        return self._get("accelerations")
+
+    @property
+    def multipliers(self):
+        """Holonomic multipliers ``λ`` (T, m_h)."""
+        return self._get("multipliers")
+
+    @property
+    def velocity_multipliers(self):
+        """Velocity-constraint multipliers ``μ`` (T, m_v)."""
+        return self._get("velocity_multipliers")
+
+    @property
+    def constraint_forces(self):
+        """Generalized constraint forces ``Qᶜ = Jᵀλ + Aᵀμ`` (T, n)."""
+        return self._get("constraint_forces")
+
+    @property
+    def energy(self):
+        """Energy function ``h = q̇·∂L/∂q̇ − L`` (T,)."""
+        return self._get("energy")
+
+    @property
+    def momenta(self):
+        """Generalized momenta ``p = ∂L/∂q̇`` (T, n)."""
+        return self._get("momenta")
+
+    @property
+    def lagrangian(self):
+        """``L`` along the trajectory (T,)."""
+        return self._get("lagrangian")
+
+    @property
+    def constraint_residuals(self):
+        """``(f, ḟ, g)`` along the trajectory: shapes (T, m_h), (T, m_h), (T, m_v)."""
+        return self._get("constraint_residuals")
+
+    @property
+    def dissipated_power(self):
+        """``q̇·∂R/∂q̇`` (T,)."""
+        return self._get("dissipated_power")
+
+    @property
+    def input_power(self):
+        """``q̇·Q`` (T,)."""
+        return self._get("input_power")

@@ -1,0 +1,37 @@
+"""The equations of motion as a diffrax vector field: ``(q, q̇) ↦ (q̇, q̈)``.
+
+``q̈`` solves ``M q̈ = F + Jᵀλ`` (with ``J q̈ = −γ`` and optional Baumgarte feedback) for a
+constrained system, ``M q̈ = F`` otherwise.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+
+from ._mechanics.kkt import accelerations_and_multipliers
+from ._mechanics.lagrangian import unconstrained_accelerations
+from ._stabilization import Baumgarte
+from ._system import System
+
+
+class EquationsOfMotion(eqx.Module):
+    """The first-order vector field ``(q, q̇) ↦ (q̇, q̈)`` as a diffrax-compatible callable.
+
+    A module (not a closure) so that repeated ``simulate`` calls hit diffrax's compilation cache.
+    """
+
+    system: System
+    baumgarte: Baumgarte | None = None
+    active: Any = None  # holonomic activity mask (m_h,) while unilateral constraints are off
+
+    def __call__(self, t, y, args):
+        q, qd = y
+        if self.system.is_constrained:
+            qdd = accelerations_and_multipliers(
+                self.system, q, qd, t, args, self.baumgarte, self.active
+            )[0]
+        else:
+            qdd = unconstrained_accelerations(self.system, q, qd, t, args)
+        return qd, qdd

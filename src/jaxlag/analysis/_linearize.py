@@ -1,0 +1,358 @@
+r"""Linearization about an equilibrium or a steady motion; normal modes; stability.
+
+**State space.** With ``y = (q, q̇)`` the equations of motion are ``ẏ = X(y, u) = (q̇, q̈(q, q̇, u))``
+(``q̈`` from the constrained KKT solve, sign convention ``M q̈ = F + Jᵀλ + Aᵀμ``). Their
+linearization about ``y*`` is ``δẏ = A δy + B δu`` with ``A = ∂X/∂y`` (2n × 2n, by ``jax.jacfwd``)
+and ``B = ∂X/∂u`` for an input ``u`` read from ``args``.
+
+**Constraints.** The motion stays on the manifold ``C(y) = (f, ḟ, g) = 0`` (holonomic position
+and velocity level, velocity constraints). Its tangent space at ``y*`` is ``T = null(∂C/∂y)``, of
+dimension ``d = 2n − 2m_h − m_v``; the exact constrained flow leaves the manifold invariant, so
+``A`` maps ``T`` into itself and the motion near ``y*`` is ``δẏ = A|_T δy``. jaxlag forms a basis
+``E`` (2n × d) of ``T`` and the reduced matrices ``A_T = E⁺ A E``, ``B_T = E⁺ B`` (``E⁺`` the
+left inverse). Directions off the manifold (``δf ≠ 0``) carry only the spurious zero
+eigenvalues of the index-1 equations and are removed. ``E`` is the orthonormal null-space basis
+of an SVD, carried along by the projector ``P = I − Cᵀ(CCᵀ)⁻¹C`` so that its derivative exists:
+eigenvalues, frequencies and their gradients do not depend on which basis is chosen.
+
+**Spectrum.** Eigenvalues ``s`` of ``A_T``: an oscillation at frequency ``ω`` is the pair
+``s = ±iω``, an unstable direction ``s > 0``, a symmetry (cyclic coordinate, family of
+equilibria) ``s = 0``. For a conservative system the ``d`` eigenvalues come in pairs, so
+``frequencies`` are the ``d/2`` values ``|Im s|`` (each taken once). The verdict:
+
+* ``"unstable"``: some ``Re s > tol``;
+* ``"asymptotically stable"``: every ``Re s < −tol`` (damped);
+* ``"stable"``: every eigenvalue on the imaginary axis and none zero (a linear centre; for a
+  conservative system this is linear, not yet nonlinear, stability);
+* ``"marginal"``: on the imaginary axis with some zero eigenvalues (symmetry directions or a
+  family of equilibria; e.g. a circular orbit in ``(r, φ)``); a higher-order analysis decides.
+
+``tol`` is ``tolerance`` (default ``1e-6``) times the norm of ``A_T`` (the zero eigenvalues of
+a Jordan block are computed only to about ``√ε`` relative accuracy).
+
+**Time dependence.** For a time-dependent system (explicit ``t`` in ``L``, rheonomic constraints)
+the matrices are those of the variational equation frozen at ``t``. Their eigenvalues decide
+stability when they are the same at every time along the motion: choose coordinates in which the
+steady motion is a uniform drift of cyclic coordinates (the spinning-wire bead in ``(r, φ, z)``
+with ``φ = ωt``, not in inertial Cartesian coordinates, where the tangent space itself rotates).
+
+**Normal modes** (:func:`normal_modes`, equilibria at rest): with ``E_q`` a basis of
+``null(J)`` the small oscillations solve ``K_T v = ω² M_T v`` with ``M_T = E_qᵀ M E_q`` and
+``K_T = −E_qᵀ M (∂q̈/∂q) E_q``, which includes the constraint curvature ``Σ λ_i ∂²f_i/∂q²``
+(the tension of a Cartesian pendulum is its restoring force). A symmetric generalized eigenproblem
+(Cholesky of ``M_T``, ``eigh``) gives real ``ω²`` and ``M``-orthonormal shapes, differentiable
+with ``jax.grad``. Negative ``ω²`` are unstable directions (Lagrange–Dirichlet: all positive is
+stable for natural systems).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import _compile as compilation
+from .._mechanics import constraints as _constraints
+from .._mechanics import kkt as _kkt
+from .._mechanics import lagrangian as _mechanics
+from .._misc import is_concrete
+from .._tolerances import CONSTRAINT_RCOND
+from .._conventions import as_float_state
+from .._conventions import as_array_leaves
+
+__all__ = ["Linearization", "NormalModes", "linearize", "normal_modes", "tangent_basis"]
+
+
+def tangent_basis(jacobian):
+    """A basis ``E`` (k × (k − m)) of ``null(jacobian)`` for a full-row-rank ``jacobian`` (m × k).
+
+    Orthonormal at the point (an SVD); its derivative is that of ``P E₀`` with the projector
+    ``P = I − Cᵀ(CCᵀ)⁻¹C``, so gradients through it are well defined.
+    """
+    m, k = jacobian.shape
+    if m == 0:
+        return jnp.eye(k, dtype=jacobian.dtype)
+    _, _, vt = jnp.linalg.svd(jax.lax.stop_gradient(jacobian), full_matrices=True)
+    reference = vt[m:].T
+    gram = jacobian @ jacobian.T
+    correction = jacobian.T @ jnp.linalg.solve(gram, jacobian @ reference)
+    return reference - correction
+
+
+def _state_constraints(system, q, qd, t, args):
+    f, f_dot, g = _constraints.constraint_residuals(system, q, qd, t, args)
+    return jnp.concatenate([f, f_dot, g])
+
+
+def _constraint_rank_check(jacobian):
+    if jacobian.shape[0] == 0:
+        return jnp.asarray(False)
+    sv = jnp.linalg.svd(jacobian, compute_uv=False)
+    return ~(sv[-1] > CONSTRAINT_RCOND * sv[0])
+
+
+def _left_inverse(basis):
+    return jnp.linalg.solve(basis.T @ basis, basis.T)
+
+
+def _accelerations(system, q, qd, t, args):
+    if system.is_constrained:
+        return _kkt.accelerations_and_multipliers(system, q, qd, t, args)[0]
+    return _mechanics.unconstrained_accelerations(system, q, qd, t, args)
+
+
+def _raise_rank(kind):
+    return ValueError(
+        f"The {kind} constraint Jacobian is rank deficient at this state (redundant "
+        "constraints): the constraint manifold's tangent space is not defined by them. Remove "
+        "the redundant constraints."
+    )
+
+
+def _spectrum_tol(matrix, tolerance):
+    # Relative to the size of the matrix, not of its spectrum: a nilpotent block (a family of
+    # equilibria) has all eigenvalues ≈ 0, computed only to about √ε·‖A‖.
+    return tolerance * jnp.max(jnp.sum(jnp.abs(matrix), axis=1), initial=0.0) + 1e-300
+
+
+class Linearization(eqx.Module):
+    r"""``δẏ = A δy + B δu`` about ``(q, q̇)`` at time ``t``, ``y = (q, q̇)``.
+
+    - ``state_matrix`` ``A`` (2n × 2n) and ``input_matrix`` ``B`` (2n × k, or ``None``) in the
+      full coordinates;
+    - ``basis`` ``E`` (2n × d) of the constraint manifold's tangent space (the identity for an
+      unconstrained system);
+    - ``reduced_state_matrix`` ``A_T`` (d × d), ``reduced_input_matrix`` ``B_T`` (d × k): the
+      same dynamics in the coordinates ``δy = E z`` of the tangent space.
+
+    Spectral quantities use ``A_T``; see the module docstring for the stability verdict.
+    """
+
+    q: Any
+    qd: Any
+    t: Any
+    state_matrix: Any
+    input_matrix: Any
+    basis: Any
+    reduced_state_matrix: Any
+    reduced_input_matrix: Any
+
+    @property
+    def eigenvalues(self):
+        """Eigenvalues of ``A_T`` (complex), ordered by imaginary part, then real part."""
+        values = jnp.linalg.eigvals(self.reduced_state_matrix)
+        return values[jnp.lexsort((jnp.real(values), jnp.imag(values)))]
+
+    def modes(self):
+        """``(eigenvalues, shapes)``: shapes (2n × d, complex) are eigenvectors in full ``(δq, δq̇)``."""
+        values, vectors = jnp.linalg.eig(self.reduced_state_matrix)
+        return values, self.basis.astype(vectors.dtype) @ vectors
+
+    @property
+    def frequencies(self):
+        """The ``d/2`` angular frequencies ``|Im s|`` (ascending; zeros for non-oscillating pairs)."""
+        mags = jnp.sort(jnp.abs(jnp.imag(jnp.linalg.eigvals(self.reduced_state_matrix))))
+        return mags[::2] if mags.shape[0] % 2 == 0 else mags[1::2]
+
+    @property
+    def growth_rate(self):
+        """``max Re s``: positive for an unstable state."""
+        return jnp.max(jnp.real(jnp.linalg.eigvals(self.reduced_state_matrix)), initial=-jnp.inf)
+
+    def is_stable(self, tolerance: float = 1e-6):
+        """``max Re s ≤ tol`` (spectral stability) as a boolean array (works under ``jit``)."""
+        values = jnp.linalg.eigvals(self.reduced_state_matrix)
+        tol = _spectrum_tol(self.reduced_state_matrix, tolerance)
+        return jnp.max(jnp.real(values), initial=-jnp.inf) <= tol
+
+    def stability(self, tolerance: float = 1e-6) -> str:
+        """``"unstable"``, ``"asymptotically stable"``, ``"stable"`` or ``"marginal"`` (concrete
+        values only; under ``jit`` use :meth:`is_stable`)."""
+        matrix = np.asarray(self.reduced_state_matrix)
+        values = np.linalg.eigvals(matrix)
+        if values.size == 0:
+            return "marginal"
+        tol = float(_spectrum_tol(matrix, tolerance))
+        re = values.real
+        if np.any(re > tol):
+            return "unstable"
+        if np.all(re < -tol):
+            return "asymptotically stable"
+        if np.any(np.abs(values) <= tol):
+            return "marginal"
+        return "stable"
+
+
+def _input_derivative(field, args, inputs):
+    u0 = jnp.asarray(inputs(args))
+    shape = u0.shape
+    if u0.ndim > 1:
+        raise ValueError(
+            f"The input selected by `inputs` must be a scalar or a 1-D array; got shape {shape}."
+        )
+    if not jnp.issubdtype(u0.dtype, jnp.floating):
+        u0 = u0.astype(jnp.result_type(float))
+    flat = jnp.atleast_1d(u0)
+
+    def with_input(u):
+        value = u.reshape(shape)
+        return field(eqx.tree_at(inputs, args, value, is_leaf=lambda x: x is None))
+
+    return jax.jacfwd(with_input)(flat)
+
+
+def linearize(
+    system,
+    q,
+    qd=None,
+    t=0.0,
+    args=None,
+    *,
+    inputs: Callable | None = None,
+) -> Linearization:
+    r"""Linearize the equations of motion about ``(q, q̇)`` at time ``t``.
+
+    - ``q``, ``qd``: the state (``qd`` defaults to rest); typically from
+      :func:`jaxlag.analysis.equilibrium`. Any state may be given: about a non-equilibrium
+      state the matrices describe the variational equation at that instant.
+    - ``inputs``: optional ``where``-function selecting the input inside ``args`` (as in
+      ``eqx.tree_at``), e.g. ``lambda a: a["force"]``; then ``input_matrix`` is ``∂ẏ/∂u``.
+
+    Returns a :class:`Linearization`. Works under ``jit``, ``vmap`` and ``grad`` (eigenvalues
+    and frequencies are differentiable; nonsymmetric eigen-decompositions run on the CPU).
+    """
+    q, qd = as_float_state(q, jnp.zeros_like(jnp.asarray(q)) if qd is None else qd)
+    qd = qd.astype(q.dtype)
+    args = as_array_leaves(args)  # new parameter values must not recompile
+    system.check(q, qd, t, args)
+    t = jnp.asarray(t, q.dtype)
+    lin, rank_deficient = _linearize(system, q, qd, t, args, inputs)
+    if is_concrete((q, qd, t, args)):
+        if bool(rank_deficient):
+            raise _raise_rank("state")
+        return lin
+    checked = eqx.error_if(lin.state_matrix, rank_deficient,
+                           "jaxlag.linearize: redundant constraints (rank-deficient Jacobian).")
+    return eqx.tree_at(lambda x: x.state_matrix, lin, checked)
+
+
+@compilation.filter_jit
+def _linearize(system, q, qd, t, args, inputs):
+    n = q.shape[0]
+
+    def field(y, a):
+        x, v = y[:n], y[n:]
+        return jnp.concatenate([v, _accelerations(system, x, v, t, a)])
+
+    y = jnp.concatenate([q, qd])
+    state_matrix = jax.jacfwd(field)(y, args)
+    input_matrix = None
+    if inputs is not None:
+        input_matrix = _input_derivative(lambda a: field(y, a), args, inputs)
+    constraint_jacobian = jax.jacfwd(
+        lambda z: _state_constraints(system, z[:n], z[n:], t, args)
+    )(y)
+    rank_deficient = _constraint_rank_check(constraint_jacobian)
+    basis = tangent_basis(constraint_jacobian)
+    left = _left_inverse(basis)
+    reduced = left @ state_matrix @ basis
+    reduced_input = None if input_matrix is None else left @ input_matrix
+    return (Linearization(q, qd, t, state_matrix, input_matrix, basis, reduced, reduced_input),
+            rank_deficient)
+
+
+class NormalModes(eqx.Module):
+    """Small oscillations about an equilibrium at rest: ``K v = ω² M v`` on ``null(J)``.
+
+    - ``frequencies_squared`` (d,): ``ω²`` ascending; negative values are unstable directions.
+    - ``shapes`` (n, d): mode shapes in the coordinates ``q``, ``M``-orthonormal
+      (``shapesᵀ M shapes = I``) and tangent to the constraints (``J shapes = 0``).
+    - ``mass_matrix``, ``stiffness_matrix``: ``M_T`` and ``K_T`` in the basis ``basis`` (n × d)
+      of ``null(J)``.
+    """
+
+    frequencies_squared: Any
+    shapes: Any
+    mass_matrix: Any
+    stiffness_matrix: Any
+    basis: Any
+
+    @property
+    def frequencies(self):
+        """``sign(ω²)·√|ω²|``: angular frequencies, or minus the growth rate of an unstable mode."""
+        w2 = self.frequencies_squared
+        return jnp.sign(w2) * jnp.sqrt(jnp.abs(w2))
+
+    def is_stable(self, tolerance: float = 1e-10):
+        """Every ``ω² > tol·max|ω²|`` (Lagrange–Dirichlet), as a boolean array."""
+        w2 = self.frequencies_squared
+        return jnp.all(w2 > tolerance * jnp.max(jnp.abs(w2), initial=0.0))
+
+
+def normal_modes(system, q, t=0.0, args=None, *, tolerance: float = 1e-6) -> NormalModes:
+    r"""Normal modes of small oscillations about an equilibrium ``q`` at rest (``q̇ = 0``).
+
+    Solves ``K_T v = ω² M_T v`` on the tangent space of the holonomic constraints (see the
+    module docstring). ``q`` must be an equilibrium: ``|q̈(q, 0)|`` is checked against
+    ``tolerance`` times the size of the cancelling terms. Systems with velocity constraints, or
+    steady motions (``q̇ ≠ 0``, gyroscopic terms), need :func:`linearize` instead.
+
+    Differentiable (``jax.grad`` of a frequency with respect to ``args``) and ``jit``-able.
+    """
+    q = jnp.asarray(q)
+    if not jnp.issubdtype(q.dtype, jnp.floating):
+        q = q.astype(jnp.result_type(float))
+    qd = jnp.zeros_like(q)
+    args = as_array_leaves(args)  # new parameter values must not recompile
+    system.check(q, qd, t, args)
+    if system.velocity_constraints is not None:
+        raise ValueError(
+            "normal_modes handles holonomic constraints only; for velocity (nonholonomic) "
+            "constraints use jaxlag.analysis.linearize, whose spectrum is taken on the full "
+            "constraint manifold."
+        )
+    t = jnp.asarray(t, q.dtype)
+    modes, qdd, rank_deficient, not_equilibrium = _normal_modes(system, q, t, args, tolerance)
+    if is_concrete((q, t, args)):
+        if bool(rank_deficient):
+            raise _raise_rank("holonomic")
+        if bool(not_equilibrium):
+            raise ValueError(
+                f"normal_modes: q = {np.asarray(q)} is not an equilibrium at rest (q̈ = "
+                f"{np.asarray(qdd)}). Find one first with jaxlag.analysis.equilibrium, or use "
+                "jaxlag.analysis.linearize for a steady motion."
+            )
+        return modes
+    w2 = eqx.error_if(modes.frequencies_squared, rank_deficient,
+                      "jaxlag.normal_modes: redundant constraints.")
+    w2 = eqx.error_if(w2, not_equilibrium,
+                      "jaxlag.normal_modes: q is not an equilibrium at rest (q̈ ≠ 0).")
+    return eqx.tree_at(lambda x: x.frequencies_squared, modes, w2)
+
+
+@compilation.filter_jit
+def _normal_modes(system, q, t, args, tolerance):
+    qd = jnp.zeros_like(q)
+    qdd = _accelerations(system, q, qd, t, args)
+    stiffness_full = jax.jacfwd(lambda x: _accelerations(system, x, qd, t, args))(q)
+    mass, force = _mechanics.mass_and_forces(system, q, qd, t, args)
+    if system.holonomic is not None:
+        jac = jax.jacfwd(lambda x: _constraints.holonomic_residual(system, x, t, args))(q)
+    else:
+        jac = jnp.zeros((0, q.shape[0]), q.dtype)
+    rank_deficient = _constraint_rank_check(jac)
+    scale = jnp.max(jnp.abs(jnp.linalg.solve(mass, force)), initial=0.0)
+    not_equilibrium = ~(jnp.max(jnp.abs(qdd), initial=0.0) <= tolerance * (1.0 + scale))
+    basis = tangent_basis(jac)
+    mass_t = basis.T @ mass @ basis
+    stiffness_t = -basis.T @ mass @ stiffness_full @ basis
+    stiffness_t = 0.5 * (stiffness_t + stiffness_t.T)
+    chol = jnp.linalg.cholesky(mass_t)
+    inv_chol = jax.scipy.linalg.solve_triangular(chol, jnp.eye(chol.shape[0], dtype=q.dtype),
+                                                 lower=True)
+    w2, vectors = jnp.linalg.eigh(inv_chol @ stiffness_t @ inv_chol.T)
+    shapes = basis @ (inv_chol.T @ vectors)
+    return NormalModes(w2, shapes, mass_t, stiffness_t, basis), qdd, rank_deficient, not_equilibrium
