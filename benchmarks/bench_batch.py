@@ -30,8 +30,9 @@ from jaxlag._batch.batch import simulate_batch
 from .bench_unconstrained import T, double_pendulum_explicit, double_pendulum_lagrangian, solve_hand
 
 #: (B, steps per call): about 1e5–2e5 state-steps per call above B = 1.
-SIZES = ((1, 200), (64, 100), (1024, 20)) if common.QUICK else (
-    (1, 1000), (64, 1000), (1024, 100), (8192, 25))
+SIZES = (
+    ((1, 200), (64, 100), (1024, 20)) if common.QUICK else ((1, 1000), (64, 1000), (1024, 100), (8192, 25))
+)
 TARGET_VS_A = 2.0
 
 
@@ -50,9 +51,17 @@ def explicit_batch(nsteps):
 def jaxlag_batch(system, nsteps, **kwargs):
     def run(q0, qd0):
         return simulate_batch(
-            system, q0, qd0, t0=0.0, t1=T, dt0=T / nsteps, saveat=diffrax.SaveAt(t1=True),
-            solver=diffrax.Tsit5(), stepsize_controller=diffrax.ConstantStepSize(),
-            max_steps=nsteps + 1, **kwargs,
+            system,
+            q0,
+            qd0,
+            t0=0.0,
+            t1=T,
+            dt0=T / nsteps,
+            saveat=diffrax.SaveAt(t1=True),
+            solver=diffrax.Tsit5(),
+            stepsize_controller=diffrax.ConstantStepSize(),
+            max_steps=nsteps + 1,
+            **kwargs,
         ).q
 
     return run
@@ -64,36 +73,56 @@ def run():
     for batch, nsteps in SIZES:
         q0, qd0 = initial_states(batch)
         cs = [
-            common.compile_contender(name, fn, q0, qd0) for name, fn in [
+            common.compile_contender(name, fn, q0, qd0)
+            for name, fn in [
                 ("(a) explicit formula, vmap", explicit_batch(nsteps)),
                 ("jaxlag simulate_batch", jaxlag_batch(system, nsteps)),
-                ("jaxlag simulate_batch, no check",
-                 jaxlag_batch(system, nsteps, check_initial_state=False)),
+                ("jaxlag simulate_batch, no check", jaxlag_batch(system, nsteps, check_initial_state=False)),
             ]
         ]
         # Large batches: fewer rounds (each call already lasts ~0.1 s).
-        common.time_alternating(cs, repeats=common.REPEATS if batch <= 64 else
-                                max(3, common.REPEATS // 2))
+        common.time_alternating(cs, repeats=common.REPEATS if batch <= 64 else max(3, common.REPEATS // 2))
         a = cs[0]
         ref = a.compiled(*a.args)
         errors[batch] = max(common.max_abs_diff(c.compiled(*c.args), ref) for c in cs[1:])
         for c in cs:
             rate = batch * nsteps / c.median
-            rows.append(["double pendulum", batch, nsteps, c.name, rate / 1e6,
-                         c.median / (batch * nsteps) * 1e9, c.median / a.median, c.compile_s,
-                         100 * common.spread(c)])
+            rows.append(
+                [
+                    "double pendulum",
+                    batch,
+                    nsteps,
+                    c.name,
+                    rate / 1e6,
+                    c.median / (batch * nsteps) * 1e9,
+                    c.median / a.median,
+                    c.compile_s,
+                    100 * common.spread(c),
+                ]
+            )
         for c in cs[1:]:
             verdicts.append((f"batch B={batch}", c.name, "x(a)", c.median / a.median, TARGET_VS_A))
 
     common.print_table(
         "Batch throughput: double pendulum, Tsit5, constant steps, one compiled call per batch; "
         "ratios vs the explicit formula of the same run",
-        ["system", "B", "steps", "contender", "M state-steps/s", "ns/state-step", "x(a)",
-         "compile s", "iqr ±%"],
+        [
+            "system",
+            "B",
+            "steps",
+            "contender",
+            "M state-steps/s",
+            "ns/state-step",
+            "x(a)",
+            "compile s",
+            "iqr ±%",
+        ],
         rows,
     )
-    print("\nagreement with (a), max |Δq(T)| over the batch: "
-          + ", ".join(f"B={k}: {v:.1e}" for k, v in errors.items()))
+    print(
+        "\nagreement with (a), max |Δq(T)| over the batch: "
+        + ", ".join(f"B={k}: {v:.1e}" for k, v in errors.items())
+    )
     return verdicts
 
 

@@ -61,22 +61,35 @@ def run():
     rows, verdicts = [], []
     for n in SIZES:
         cases = [
-            ("chain (angles)", n, "jaxlag, L by cumsum",
-             with_jaxlag(jl.System(fresh_chain_lagrangian())),
-             bench_unconstrained.chain_initial_state(n)),
+            (
+                "chain (angles)",
+                n,
+                "jaxlag, L by cumsum",
+                with_jaxlag(jl.System(fresh_chain_lagrangian())),
+                bench_unconstrained.chain_initial_state(n),
+            ),
         ]
-        for name, kwargs in [("jaxlag, default Projection()", {}),
-                             ("jaxlag, projection=None", {"projection": None})]:
+        for name, kwargs in [
+            ("jaxlag, default Projection()", {}),
+            ("jaxlag, projection=None", {"projection": None}),
+        ]:
             lagrangian, constraints = fresh_cartesian()
-            cases.append(("Cartesian chain", 2 * n, name,
-                          with_jaxlag(jl.System(lagrangian, holonomic=constraints), **kwargs),
-                          bench_constrained.initial_state(n)))
+            cases.append(
+                (
+                    "Cartesian chain",
+                    2 * n,
+                    name,
+                    with_jaxlag(jl.System(lagrangian, holonomic=constraints), **kwargs),
+                    bench_constrained.initial_state(n),
+                )
+            )
         for system, dof, name, fn, (q0, qd0) in cases:
             trace_s, xla_s = cold_compile(fn, q0, qd0)
             rows.append([system, n, dof, name, trace_s, xla_s, trace_s + xla_s])
             if system == "Cartesian chain" and n == max(SIZES) and "default" in name:
-                verdicts.append((f"compile N={n}", f"Cartesian chain, {name}", "seconds",
-                                 trace_s + xla_s, TARGET_S))
+                verdicts.append(
+                    (f"compile N={n}", f"Cartesian chain, {name}", "seconds", trace_s + xla_s, TARGET_S)
+                )
     common.print_table(
         "Compile time from cold (fresh functions): Tsit5, constant steps, SaveAt(t1=True), "
         "default initial-state check",

@@ -103,31 +103,48 @@ def run():
     for n in SIZES:
         q0, qd0 = initial_state(n)
         cs = [
-            common.compile_contender(name, fn, q0, qd0) for name, fn in [
+            common.compile_contender(name, fn, q0, qd0)
+            for name, fn in [
                 ("hand KKT, augmented LU", hand(hand_augmented)),
                 ("hand Schur (reference)", hand(hand_schur)),
                 ("jaxlag, projection=None", with_jaxlag(system, projection=None)),
-                ("jaxlag, projection=None, no check",
-                 with_jaxlag(system, projection=None, check_initial_state=False)),
+                (
+                    "jaxlag, projection=None, no check",
+                    with_jaxlag(system, projection=None, check_initial_state=False),
+                ),
                 ("jaxlag, default Projection()", with_jaxlag(system)),
-                ("jaxlag diagonal_mass, projection=None",
-                 with_jaxlag(diagonal, projection=None)),
+                ("jaxlag diagonal_mass, projection=None", with_jaxlag(diagonal, projection=None)),
                 ("jaxlag diagonal_mass, default Projection()", with_jaxlag(diagonal)),
-                ("jaxlag, masses in args, projection=None",
-                 with_jaxlag(massive, projection=None, args=jnp.ones(n))),
+                (
+                    "jaxlag, masses in args, projection=None",
+                    with_jaxlag(massive, projection=None, args=jnp.ones(n)),
+                ),
             ]
         ]
         common.time_alternating(cs)
         lu, ref = cs[0], cs[1]
         for c in cs:
-            rows.append(["Cartesian chain", n, 2 * n, c.name, c.median / NSTEPS * 1e6,
-                         c.median / ref.median, c.median / lu.median, c.compile_s,
-                         100 * common.spread(c)])
+            rows.append(
+                [
+                    "Cartesian chain",
+                    n,
+                    2 * n,
+                    c.name,
+                    c.median / NSTEPS * 1e6,
+                    c.median / ref.median,
+                    c.median / lu.median,
+                    c.compile_s,
+                    100 * common.spread(c),
+                ]
+            )
         q_ref = ref.compiled(*ref.args)
-        errors[n] = max(common.max_abs_diff(c.compiled(*c.args), q_ref)
-                        for c in (cs[0], cs[2], cs[3], cs[5], cs[7]))
-        drift[n] = (float(jnp.max(jnp.abs(distance_constraints(q_ref)))),
-                    float(jnp.max(jnp.abs(distance_constraints(cs[4].compiled(*cs[4].args))))))
+        errors[n] = max(
+            common.max_abs_diff(c.compiled(*c.args), q_ref) for c in (cs[0], cs[2], cs[3], cs[5], cs[7])
+        )
+        drift[n] = (
+            float(jnp.max(jnp.abs(distance_constraints(q_ref)))),
+            float(jnp.max(jnp.abs(distance_constraints(cs[4].compiled(*cs[4].args))))),
+        )
         for c in (cs[2], cs[3], cs[5], cs[7]):
             verdicts.append((f"Cartesian N={n}", c.name, "x(Schur)", c.median / ref.median, TARGET))
             verdicts.append((f"Cartesian N={n}", c.name, "x(LU)", c.median / lu.median, TARGET))
@@ -138,10 +155,14 @@ def run():
         ["system", "N", "n", "contender", "µs/step", "x(Schur)", "x(LU)", "compile s", "iqr ±%"],
         rows,
     )
-    print("\nagreement of index-1 contenders with hand Schur, max |Δq(T)|: "
-          + ", ".join(f"N={k}: {v:.1e}" for k, v in errors.items()))
-    print("constraint drift max|f(q(T))|, index-1 vs projected: "
-          + ", ".join(f"N={k}: {a:.1e} vs {b:.1e}" for k, (a, b) in drift.items()))
+    print(
+        "\nagreement of index-1 contenders with hand Schur, max |Δq(T)|: "
+        + ", ".join(f"N={k}: {v:.1e}" for k, v in errors.items())
+    )
+    print(
+        "constraint drift max|f(q(T))|, index-1 vs projected: "
+        + ", ".join(f"N={k}: {a:.1e} vs {b:.1e}" for k, (a, b) in drift.items())
+    )
     return verdicts
 
 

@@ -36,8 +36,7 @@ import jax.numpy as jnp
 import jaxlag as jl
 
 from .bench_batch import initial_states
-from .bench_unconstrained import (G, T, double_pendulum_explicit, double_pendulum_lagrangian,
-                                  solve_hand)
+from .bench_unconstrained import G, T, double_pendulum_explicit, double_pendulum_lagrangian, solve_hand
 
 GPU = jax.default_backend() != "cpu"
 if GPU:
@@ -135,9 +134,15 @@ def pallas_kernel(nsteps, interpret=False):
         columns = [jnp.pad(x[:, i], (0, pad), mode="edge") for x in (q0, qd0) for i in range(2)]
         spec = pl.BlockSpec((block,), lambda i: (i,))
         shape = jax.ShapeDtypeStruct(columns[0].shape, columns[0].dtype)
-        o1, o2 = pl.pallas_call(kernel, out_shape=[shape, shape], grid=(columns[0].shape[0] // block,),
-                                in_specs=[spec] * 4, out_specs=[spec] * 2, interpret=interpret,
-                                compiler_params=triton.CompilerParams(num_warps=4))(*columns)
+        o1, o2 = pl.pallas_call(
+            kernel,
+            out_shape=[shape, shape],
+            grid=(columns[0].shape[0] // block,),
+            in_specs=[spec] * 4,
+            out_specs=[spec] * 2,
+            interpret=interpret,
+            compiler_params=triton.CompilerParams(num_warps=4),
+        )(*columns)
         return jnp.stack([o1, o2], axis=1)[:batch]
 
     return run
@@ -146,9 +151,18 @@ def pallas_kernel(nsteps, interpret=False):
 def jaxlag_batch(system, nsteps, **kwargs):
     def run(q0, qd0):
         return jl.simulate_batch(
-            system, q0, qd0, t0=0.0, t1=T, dt0=T / nsteps, saveat=diffrax.SaveAt(t1=True),
-            solver=diffrax.Tsit5(), stepsize_controller=diffrax.ConstantStepSize(),
-            max_steps=nsteps + 1, check_initial_state=False, **kwargs,
+            system,
+            q0,
+            qd0,
+            t0=0.0,
+            t1=T,
+            dt0=T / nsteps,
+            saveat=diffrax.SaveAt(t1=True),
+            solver=diffrax.Tsit5(),
+            stepsize_controller=diffrax.ConstantStepSize(),
+            max_steps=nsteps + 1,
+            check_initial_state=False,
+            **kwargs,
         ).q[:, -1]
 
     return run
@@ -165,8 +179,24 @@ def _jaxlag_kernel_only(system, nsteps):
         batch = q0.shape[0]
         ts = jnp.broadcast_to(jnp.array([0.0, T]), (batch, 2))
         grid = (jnp.full((batch, 1), nsteps, jnp.int32), nsteps, True, True)
-        return _run_impl(system, q0, qd0, ts, None, None, settings, None, grid, None, None, False,
-                         1e-8, False, None, "pallas").q
+        return _run_impl(
+            system,
+            q0,
+            qd0,
+            ts,
+            None,
+            None,
+            settings,
+            None,
+            grid,
+            None,
+            None,
+            False,
+            1e-8,
+            False,
+            None,
+            "pallas",
+        ).q
 
     return run
 
@@ -191,13 +221,15 @@ def run():
     system = jl.System(double_pendulum_lagrangian)
     if not GPU:  # the kernels' arithmetic in the interpreter, their GPU lowering by jax.export
         q0, qd0 = initial_states(4)
-        error = common.max_abs_diff(pallas_kernel(50, interpret=True)(q0, qd0),
-                                    bare_loop(50)(q0, qd0))
+        error = common.max_abs_diff(pallas_kernel(50, interpret=True)(q0, qd0), bare_loop(50)(q0, qd0))
         print(f"hand Pallas kernel (interpret mode, B = 4, 50 steps) vs bare loop: max |Δq| = {error:.1e}")
         q0, qd0 = initial_states(256)
-        print("lowers for CUDA (Triton), float64: hand kernel:",
-              lowers_for_cuda(pallas_kernel(10), q0, qd0), "| jaxlag backend='pallas':",
-              lowers_for_cuda(_jaxlag_kernel_only(system, 10), q0, qd0))
+        print(
+            "lowers for CUDA (Triton), float64: hand kernel:",
+            lowers_for_cuda(pallas_kernel(10), q0, qd0),
+            "| jaxlag backend='pallas':",
+            lowers_for_cuda(_jaxlag_kernel_only(system, 10), q0, qd0),
+        )
     rows, errors = [], {}
     for batch, nsteps in SIZES:
         q0, qd0 = initial_states(batch)
@@ -205,8 +237,9 @@ def run():
             ("jaxlag ensemble, xla", jaxlag_batch(system, nsteps, method="ensemble", backend="xla")),
         ]
         if GPU:
-            named.append(("jaxlag ensemble, pallas",
-                          jaxlag_batch(system, nsteps, method="ensemble", backend="pallas")))
+            named.append(
+                ("jaxlag ensemble, pallas", jaxlag_batch(system, nsteps, method="ensemble", backend="pallas"))
+            )
         named += [
             ("jaxlag simulate_batch (vmap)", jaxlag_batch(system, nsteps, method="vmap")),
             ("(a) hand formula, diffrax + vmap", explicit_vmap(nsteps)),
@@ -222,25 +255,43 @@ def run():
             if any("did not lower" in str(w.message) for w in caught):
                 cs[-1].name = name + " (did not lower: XLA loop)"
                 print(f"B={batch}: {caught[0].message}")
-        common.time_alternating(cs, repeats=common.REPEATS if batch <= 64 else
-                                max(3, common.REPEATS // 2))
+        common.time_alternating(cs, repeats=common.REPEATS if batch <= 64 else max(3, common.REPEATS // 2))
         reference = cs[-1 if not GPU else -2].compiled(q0, qd0)  # the bare loop
         errors[batch] = max(common.max_abs_diff(c.compiled(q0, qd0), reference) for c in cs)
         vmap_time = next(c.median for c in cs if "simulate_batch" in c.name)
         loop_time = next(c.median for c in cs if "bare lax loop" in c.name)
         for c in cs:
-            rows.append([batch, nsteps, c.name, batch * nsteps / c.median / 1e6,
-                         vmap_time / c.median, c.median / loop_time, c.compile_s,
-                         100 * common.spread(c)])
+            rows.append(
+                [
+                    batch,
+                    nsteps,
+                    c.name,
+                    batch * nsteps / c.median / 1e6,
+                    vmap_time / c.median,
+                    c.median / loop_time,
+                    c.compile_s,
+                    100 * common.spread(c),
+                ]
+            )
     common.print_table(
         f"Ensemble throughput ({jax.default_backend()}): double pendulum, Tsit5, constant steps, "
         "SaveAt(t1=True), one compiled call per batch",
-        ["B", "steps", "contender", "M state-steps/s", "speed-up vs simulate_batch",
-         "x(b) time", "compile s", "iqr ±%"],
+        [
+            "B",
+            "steps",
+            "contender",
+            "M state-steps/s",
+            "speed-up vs simulate_batch",
+            "x(b) time",
+            "compile s",
+            "iqr ±%",
+        ],
         rows,
     )
-    print("\nagreement with (b), max |Δq(T)| over the batch: "
-          + ", ".join(f"B={k}: {v:.1e}" for k, v in errors.items()))
+    print(
+        "\nagreement with (b), max |Δq(T)| over the batch: "
+        + ", ".join(f"B={k}: {v:.1e}" for k, v in errors.items())
+    )
     return []
 
 

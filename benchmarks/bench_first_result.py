@@ -65,7 +65,7 @@ PRELUDE = textwrap.dedent('''
 ''')
 
 STAGES = {
-    "hand": '''
+    "hand": """
         import diffrax
         step("import")
         def field(t, y, args):
@@ -88,8 +88,8 @@ STAGES = {
         g = jax.grad(lambda y0: jnp.sum(solve(y0)[:, 0] ** 2))(jnp.array([0.3, 0.2, 0.0, 0.0]))
         jax.block_until_ready(g)
         step("first grad")
-    ''',
-    "readme": '''
+    """,
+    "readme": """
         import jaxlag as jl
         step("import")
         def lagrangian(q, qd, args):
@@ -114,8 +114,8 @@ STAGES = {
         jax.block_until_ready(jl.simulate(system, jnp.array([2.0, 0.2]), jnp.zeros(2),
                                           jnp.linspace(0, 2, 201), args=args).q)
         step("second simulate")
-    ''',
-    "grad": '''
+    """,
+    "grad": """
         import jaxlag as jl
         step("import")
         pendulum = jl.System(lambda q, qd, args: 0.5 * args["l"] ** 2 * qd[0] ** 2
@@ -125,8 +125,8 @@ STAGES = {
                                              args=a).q ** 2)
         jax.block_until_ready(jax.grad(loss)({"g": 9.81, "l": 1.0}))
         step("first grad")
-    ''',
-    "fit": '''
+    """,
+    "fit": """
         import jaxlag as jl
         step("import")
         pendulum = jl.System(lambda q, qd, args: 0.5 * args["l"] ** 2 * qd[0] ** 2
@@ -143,8 +143,8 @@ STAGES = {
                         transforms={"g": jl.Positive(), "l": jl.Positive()})
         jax.block_until_ready(result.params)
         step("first fit (2 parameters)")
-    ''',
-    "batch": '''
+    """,
+    "batch": """
         import jaxlag as jl
         step("import")
         pendulum = jl.System(lambda q, qd, args: 0.5 * qd[0] ** 2 + args["g"] * jnp.cos(q[0]))
@@ -153,8 +153,8 @@ STAGES = {
                                  args={"g": 9.81})
         jax.block_until_ready(traj.q)
         step("first simulate_batch (B = 64)")
-    ''',
-    "demo": '''
+    """,
+    "demo": """
         import runpy, matplotlib
         matplotlib.use("Agg")
         step("import")
@@ -163,7 +163,7 @@ STAGES = {
         with contextlib.redirect_stdout(io.StringIO()):
             runpy.run_path(os.path.join("examples", "demo.py"), run_name="__main__")
         step("examples/demo.py")
-    ''',
+    """,
 }
 
 
@@ -178,8 +178,13 @@ def run_stage(name: str, cache_dir: str | None) -> list[dict]:
         env["JAXLAG_COMPILATION_CACHE"] = "1"
         env["XDG_CACHE_HOME"] = cache_dir  # jaxlag's saved programs (jaxlag.saved_programs)
     code = PRELUDE + textwrap.dedent(STAGES[name]) + '\nstep("exit")\n'
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
-                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+    )
     if out.returncode != 0:
         raise RuntimeError(f"stage {name} failed:\n{out.stderr[-3000:]}")
     return [json.loads(line[4:]) for line in out.stdout.splitlines() if line.startswith("ROW ")]
@@ -191,10 +196,11 @@ def _total(rows):
 
 def main(names=None) -> None:
     names = names or list(STAGES)
-    print("Time to first result (fresh process per stage, one core). Seconds; compiles = XLA "
-          "compilations in that step.\n")
-    print("| stage | step | wall | trace | lower | XLA | compiles | cached wall | cached XLA "
-          "| cache hits |")
+    print(
+        "Time to first result (fresh process per stage, one core). Seconds; compiles = XLA "
+        "compilations in that step.\n"
+    )
+    print("| stage | step | wall | trace | lower | XLA | compiles | cached wall | cached XLA | cache hits |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     totals = {}
     for name in names:
@@ -207,12 +213,17 @@ def main(names=None) -> None:
             if r["step"] == "exit":
                 continue
             c = by_step.get(r["step"], {})
-            print(f"| {name} | {r['step']} | {r['wall']:.2f} | {r['trace']:.2f} | {r['lower']:.2f} "
-                  f"| {r['xla']:.2f} | {r['compiles']} | {c.get('wall', float('nan')):.2f} "
-                  f"| {c.get('xla', float('nan')):.2f} | {c.get('hits', '-')} |", flush=True)
+            print(
+                f"| {name} | {r['step']} | {r['wall']:.2f} | {r['trace']:.2f} | {r['lower']:.2f} "
+                f"| {r['xla']:.2f} | {r['compiles']} | {c.get('wall', float('nan')):.2f} "
+                f"| {c.get('xla', float('nan')):.2f} | {c.get('hits', '-')} |",
+                flush=True,
+            )
         totals[name] = (_total(fresh), _total(cached))
-        print(f"| {name} | **total** | **{totals[name][0]:.2f}** | | | | | "
-              f"**{totals[name][1]:.2f}** | | |", flush=True)
+        print(
+            f"| {name} | **total** | **{totals[name][0]:.2f}** | | | | | **{totals[name][1]:.2f}** | | |",
+            flush=True,
+        )
     if "hand" in totals:
         hand = totals["hand"][0]
         print("\nTotal wall time relative to the hand-written diffrax reference (same run):")

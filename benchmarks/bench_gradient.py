@@ -57,7 +57,8 @@ def lagrangian(q, qd, args):
     t1, t2 = q
     w1, w2 = qd
     kinetic = 0.5 * l1**2 * w1**2 + 0.5 * (
-        l1**2 * w1**2 + l2**2 * w2**2 + 2.0 * l1 * l2 * w1 * w2 * jnp.cos(t1 - t2))
+        l1**2 * w1**2 + l2**2 * w2**2 + 2.0 * l1 * l2 * w1 * w2 * jnp.cos(t1 - t2)
+    )
     return kinetic + g * (2.0 * l1 * jnp.cos(t1) + l2 * jnp.cos(t2))
 
 
@@ -68,8 +69,9 @@ def explicit(t, y, args):
     delta = t1 - t2
     s, c = jnp.sin(delta), jnp.cos(delta)
     den = 3.0 - jnp.cos(2.0 * delta)
-    a1 = (-3.0 * g * jnp.sin(t1) - g * jnp.sin(t1 - 2.0 * t2)
-          - 2.0 * s * (w2**2 * l2 + w1**2 * l1 * c)) / (l1 * den)
+    a1 = (-3.0 * g * jnp.sin(t1) - g * jnp.sin(t1 - 2.0 * t2) - 2.0 * s * (w2**2 * l2 + w1**2 * l1 * c)) / (
+        l1 * den
+    )
     a2 = 2.0 * s * (2.0 * w1**2 * l1 + 2.0 * g * jnp.cos(t1) + w2**2 * l2 * c) / (l2 * den)
     return y[1], jnp.stack([a1, a2])
 
@@ -87,11 +89,20 @@ def controllers():
 def trajectory(kind, params, ts, controller, dt0, adjoint):
     q0, qd0 = jnp.array(Q0), jnp.array(QD0)
     if kind == "jaxlag":
-        return jl.simulate(SYSTEM, q0, qd0, ts, args=params, stepsize_controller=controller,
-                           dt0=dt0, adjoint=adjoint).q
+        return jl.simulate(
+            SYSTEM, q0, qd0, ts, args=params, stepsize_controller=controller, dt0=dt0, adjoint=adjoint
+        ).q
     solution = diffrax.diffeqsolve(
-        diffrax.ODETerm(explicit), diffrax.Tsit5(), ts[0], ts[-1], dt0, (q0, qd0), params,
-        saveat=diffrax.SaveAt(ts=ts), stepsize_controller=controller, adjoint=adjoint,
+        diffrax.ODETerm(explicit),
+        diffrax.Tsit5(),
+        ts[0],
+        ts[-1],
+        dt0,
+        (q0, qd0),
+        params,
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=controller,
+        adjoint=adjoint,
         max_steps=2**16,
     )
     return solution.ys[0]
@@ -115,8 +126,7 @@ def contenders(kind, ts, controller, dt0):
     ]
     if kind == "jaxlag":
         by_sensitivities = make_loss(kind, ts, controller, dt0, jl.ForwardSensitivities(), data)
-        out.append((f"{kind}: grad, default adjoint (jl.ForwardSensitivities)",
-                    jax.grad(by_sensitivities)))
+        out.append((f"{kind}: grad, default adjoint (jl.ForwardSensitivities)", jax.grad(by_sensitivities)))
     return out
 
 
@@ -137,23 +147,35 @@ def memory_rows():
     data = trajectory("jaxlag", PARAMS_TRUE, ts, controller, dt0, diffrax.RecursiveCheckpointAdjoint())
     rows = []
     for name, fn in [
-        ("forward pass", make_loss("jaxlag", ts, controller, dt0,
-                                   diffrax.RecursiveCheckpointAdjoint(), data)),
-        ("grad, RecursiveCheckpointAdjoint (default, max_steps=65536)",
-         jax.grad(make_loss("jaxlag", ts, controller, dt0,
-                            diffrax.RecursiveCheckpointAdjoint(), data))),
-        ("jacfwd, ForwardMode",
-         jax.jacfwd(make_loss("jaxlag", ts, controller, dt0, diffrax.ForwardMode(), data))),
-        ("grad, default adjoint (jl.ForwardSensitivities)",
-         jax.grad(make_loss("jaxlag", ts, controller, dt0, jl.ForwardSensitivities(), data))),
+        (
+            "forward pass",
+            make_loss("jaxlag", ts, controller, dt0, diffrax.RecursiveCheckpointAdjoint(), data),
+        ),
+        (
+            "grad, RecursiveCheckpointAdjoint (default, max_steps=65536)",
+            jax.grad(make_loss("jaxlag", ts, controller, dt0, diffrax.RecursiveCheckpointAdjoint(), data)),
+        ),
+        (
+            "jacfwd, ForwardMode",
+            jax.jacfwd(make_loss("jaxlag", ts, controller, dt0, diffrax.ForwardMode(), data)),
+        ),
+        (
+            "grad, default adjoint (jl.ForwardSensitivities)",
+            jax.grad(make_loss("jaxlag", ts, controller, dt0, jl.ForwardSensitivities(), data)),
+        ),
     ]:
         c = common.compile_contender(name, fn, _params())
         c.samples = [common._sample(c) for _ in range(3)]
         stats = c.compiled.memory_analysis()
-        total = (stats.temp_size_in_bytes + stats.argument_size_in_bytes
-                 + stats.output_size_in_bytes - stats.alias_size_in_bytes)
-        rows.append([name, MEMORY_STEPS, stats.temp_size_in_bytes / 1e3, total / 1e3,
-                     c.median * 1e3, c.compile_s])
+        total = (
+            stats.temp_size_in_bytes
+            + stats.argument_size_in_bytes
+            + stats.output_size_in_bytes
+            - stats.alias_size_in_bytes
+        )
+        rows.append(
+            [name, MEMORY_STEPS, stats.temp_size_in_bytes / 1e3, total / 1e3, c.median * 1e3, c.compile_s]
+        )
     forward = rows[0][4]
     for r in rows:
         r.insert(5, r[4] / forward)
@@ -166,21 +188,52 @@ def run():
     for label, (controller, dt0) in controllers().items():
         # The explicit baseline once, to show how much of the ratio is diffrax's own.
         for kind in ("explicit", "jaxlag") if label.startswith("constant") else ("jaxlag",):
-            cs = [common.compile_contender(name, fn, _params())
-                  for name, fn in contenders(kind, ts, controller, dt0)]
+            cs = [
+                common.compile_contender(name, fn, _params())
+                for name, fn in contenders(kind, ts, controller, dt0)
+            ]
             common.time_alternating(cs)
             fwd = cs[0]
             for c in cs:
-                rows.append([label, c.name, c.median * 1e3, c.median / fwd.median, c.compile_s,
-                             100 * common.spread(c)])
+                rows.append(
+                    [
+                        label,
+                        c.name,
+                        c.median * 1e3,
+                        c.median / fwd.median,
+                        c.compile_s,
+                        100 * common.spread(c),
+                    ]
+                )
             agreement[f"{kind}, {label}"] = _agreement(cs)
             if kind == "jaxlag":
-                verdicts.append((f"gradient, {label[:8]}", cs[1].name, "x(fwd)",
-                                 cs[1].median / fwd.median, TARGET_REVERSE))
-                verdicts.append((f"gradient, {label[:8]}", cs[2].name, "x(fwd)",
-                                 cs[2].median / fwd.median, TARGET_FORWARD_MODE))
-                verdicts.append((f"gradient, {label[:8]}", cs[3].name, "x(fwd)",
-                                 cs[3].median / fwd.median, TARGET_REVERSE))
+                verdicts.append(
+                    (
+                        f"gradient, {label[:8]}",
+                        cs[1].name,
+                        "x(fwd)",
+                        cs[1].median / fwd.median,
+                        TARGET_REVERSE,
+                    )
+                )
+                verdicts.append(
+                    (
+                        f"gradient, {label[:8]}",
+                        cs[2].name,
+                        "x(fwd)",
+                        cs[2].median / fwd.median,
+                        TARGET_FORWARD_MODE,
+                    )
+                )
+                verdicts.append(
+                    (
+                        f"gradient, {label[:8]}",
+                        cs[3].name,
+                        "x(fwd)",
+                        cs[3].median / fwd.median,
+                        TARGET_REVERSE,
+                    )
+                )
 
     common.print_table(
         f"Gradient cost: double pendulum, θ = (g, l₁, l₂), loss over {SAVES} saves in [0, {T1:g}], "
@@ -188,8 +241,10 @@ def run():
         ["steps", "contender", "ms/call", "x(forward)", "compile s", "iqr ±%"],
         rows,
     )
-    print("\nreverse vs forward-mode gradients, max relative difference: "
-          + ", ".join(f"{k}: {v:.1e}" for k, v in agreement.items()))
+    print(
+        "\nreverse vs forward-mode gradients, max relative difference: "
+        + ", ".join(f"{k}: {v:.1e}" for k, v in agreement.items())
+    )
     mem = memory_rows()
     common.print_table(
         f"Gradient memory: jaxlag double pendulum, {MEMORY_STEPS} constant steps, 101 saves; "

@@ -133,8 +133,11 @@ def derive():
         # The whole batch as one ODE: y = (q1, q2, u1, u2) each of shape (B,).
         return np.asarray(rhs_fn(*y.reshape(4, -1)), dtype=float).reshape(4, -1).ravel()
 
-    return {"M, F lambdified + np.linalg.solve": solve_form,
-            "rhs() lambdified": explicit_form}, stacked, timings
+    return (
+        {"M, F lambdified + np.linalg.solve": solve_form, "rhs() lambdified": explicit_form},
+        stacked,
+        timings,
+    )
 
 
 def solve_peer(rhs, y0, ts):
@@ -176,9 +179,15 @@ def _hand(acceleration, ts):
             return y[1], acceleration(*y)
 
         return diffrax.diffeqsolve(
-            diffrax.ODETerm(field), diffrax.Tsit5(), ts[0], ts[-1], None, (q0, qd0),
+            diffrax.ODETerm(field),
+            diffrax.Tsit5(),
+            ts[0],
+            ts[-1],
+            None,
+            (q0, qd0),
             saveat=diffrax.SaveAt(ts=ts),
-            stepsize_controller=diffrax.PIDController(rtol=RTOL, atol=ATOL), max_steps=2**16,
+            stepsize_controller=diffrax.PIDController(rtol=RTOL, atol=ATOL),
+            max_steps=2**16,
         ).ys[0]
 
     return run
@@ -205,12 +214,14 @@ def run():
     system = jl.System(double_pendulum_lagrangian)
 
     # --- one simulation
-    cs = [common.compile_contender(name, fn, q0, qd0) for name, fn in [
-        ("JAX explicit formula (diffrax)", _hand(double_pendulum_explicit, ts)),
-        ("JAX M(q), jnp.linalg.solve (diffrax)", _hand(double_pendulum_solve, ts)),
-        ("jaxlag simulate", lambda a, b: jl.simulate(system, a, b, ts,
-                                                     stepsize_controller=controller).q),
-    ]]
+    cs = [
+        common.compile_contender(name, fn, q0, qd0)
+        for name, fn in [
+            ("JAX explicit formula (diffrax)", _hand(double_pendulum_explicit, ts)),
+            ("JAX M(q), jnp.linalg.solve (diffrax)", _hand(double_pendulum_solve, ts)),
+            ("jaxlag simulate", lambda a, b: jl.simulate(system, a, b, ts, stepsize_controller=controller).q),
+        ]
+    ]
     common.time_alternating(cs)
     repeats = 3 if common.QUICK else 5
     peer_times = {name: time_peer(fn, y0, ts_np, repeats) for name, fn in peers.items()}
@@ -218,25 +229,39 @@ def run():
     best, best_solution = peer_times[best_name]
     jaxlag = cs[2]
     q_jax = np.asarray(jaxlag.compiled(*jaxlag.args))
-    steps = int(jax.jit(lambda a, b: jl.simulate(system, a, b, ts, stepsize_controller=controller)
-                        .stats["num_accepted_steps"])(q0, qd0))
+    steps = int(
+        jax.jit(
+            lambda a, b: jl.simulate(system, a, b, ts, stepsize_controller=controller).stats[
+                "num_accepted_steps"
+            ]
+        )(q0, qd0)
+    )
 
-    plain = _plain_call_seconds(
-        lambda: jl.simulate(system, q0, qd0, ts, stepsize_controller=controller).q)
+    plain = _plain_call_seconds(lambda: jl.simulate(system, q0, qd0, ts, stepsize_controller=controller).q)
 
     def diff(x):
         return f"{float(np.max(np.abs(np.asarray(x) - q_jax))):.0e}"
 
     rows = []
     for name, (seconds, solution) in peer_times.items():
-        rows.append(["sympy + scipy: " + name, seconds * 1e3, seconds / jaxlag.median, "-",
-                     f"{solution.nfev} fev", diff(solution.y[:2].T)])
+        rows.append(
+            [
+                "sympy + scipy: " + name,
+                seconds * 1e3,
+                seconds / jaxlag.median,
+                "-",
+                f"{solution.nfev} fev",
+                diff(solution.y[:2].T),
+            ]
+        )
     for c in cs:
-        rows.append([c.name, c.median * 1e3, c.median / jaxlag.median, c.compile_s, "",
-                     diff(c.compiled(*c.args))])
+        rows.append(
+            [c.name, c.median * 1e3, c.median / jaxlag.median, c.compile_s, "", diff(c.compiled(*c.args))]
+        )
     rows[-1][4] = f"{steps} steps"
-    rows.append(["jaxlag simulate, plain call (no user jit)", plain * 1e3, plain / jaxlag.median,
-                 "-", "", "0e+00"])
+    rows.append(
+        ["jaxlag simulate, plain call (no user jit)", plain * 1e3, plain / jaxlag.median, "-", "", "0e+00"]
+    )
     speedup_single = best / jaxlag.median
 
     # --- a batch of BATCH initial states
@@ -244,10 +269,12 @@ def run():
     batch = common.compile_contender(
         f"jaxlag simulate_batch, B={BATCH}",
         lambda a, b: simulate_batch(system, a, b, ts, stepsize_controller=controller).q,
-        bq0, bqd0)
+        bq0,
+        bqd0,
+    )
     explicit_batch = common.compile_contender(
-        f"JAX explicit formula, vmap, B={BATCH}", jax.vmap(_hand(double_pendulum_explicit, ts)),
-        bq0, bqd0)
+        f"JAX explicit formula, vmap, B={BATCH}", jax.vmap(_hand(double_pendulum_explicit, ts)), bq0, bqd0
+    )
     common.time_alternating([batch, explicit_batch], repeats=max(3, common.REPEATS // 2))
     y0s = np.concatenate([np.asarray(bq0), np.asarray(bqd0)], axis=1)
     members = np.linspace(0, BATCH - 1, LOOP_SAMPLE).astype(int)
@@ -260,23 +287,47 @@ def run():
     stacked_s = time.perf_counter() - start
     q_batch = np.asarray(batch.compiled(*batch.args))
     stacked_q = stacked_solution.y.reshape(4, BATCH, -1)[:2].transpose(1, 2, 0)
-    batch_steps = int(jnp.max(jax.jit(jax.vmap(
-        lambda a, b: jl.simulate(system, a, b, ts, stepsize_controller=controller)
-        .stats["num_accepted_steps"]))(bq0, bqd0)))
+    batch_steps = int(
+        jnp.max(
+            jax.jit(
+                jax.vmap(
+                    lambda a, b: jl.simulate(system, a, b, ts, stepsize_controller=controller).stats[
+                        "num_accepted_steps"
+                    ]
+                )
+            )(bq0, bqd0)
+        )
+    )
 
     def diff_batch(x):
         return f"{float(np.max(np.abs(np.asarray(x) - q_batch))):.0e}"
 
     rows_batch = [
-        [f"sympy + scipy ({best_name}), loop of {BATCH} (scaled from {LOOP_SAMPLE})", loop * 1e3,
-         loop / batch.median, "-", "", "-"],
-        [f"sympy + scipy (rhs() lambdified), one solve_ivp on the stacked {4 * BATCH}-vector",
-         stacked_s * 1e3, stacked_s / batch.median, "-", f"{stacked_solution.nfev} fev",
-         diff_batch(stacked_q)],
-        [explicit_batch.name, explicit_batch.median * 1e3, explicit_batch.median / batch.median,
-         explicit_batch.compile_s, "", diff_batch(explicit_batch.compiled(*explicit_batch.args))],
-        [batch.name, batch.median * 1e3, 1.0, batch.compile_s, f"{batch_steps} steps (max)",
-         "0e+00"],
+        [
+            f"sympy + scipy ({best_name}), loop of {BATCH} (scaled from {LOOP_SAMPLE})",
+            loop * 1e3,
+            loop / batch.median,
+            "-",
+            "",
+            "-",
+        ],
+        [
+            f"sympy + scipy (rhs() lambdified), one solve_ivp on the stacked {4 * BATCH}-vector",
+            stacked_s * 1e3,
+            stacked_s / batch.median,
+            "-",
+            f"{stacked_solution.nfev} fev",
+            diff_batch(stacked_q),
+        ],
+        [
+            explicit_batch.name,
+            explicit_batch.median * 1e3,
+            explicit_batch.median / batch.median,
+            explicit_batch.compile_s,
+            "",
+            diff_batch(explicit_batch.compiled(*explicit_batch.args)),
+        ],
+        [batch.name, batch.median * 1e3, 1.0, batch.compile_s, f"{batch_steps} steps (max)", "0e+00"],
     ]
     speedup_batch = loop / batch.median
 
@@ -286,21 +337,45 @@ def run():
         ["contender", "ms/call", "x(jaxlag)", "compile s", "work", "max |Δq| vs jaxlag"],
         rows + rows_batch,
     )
-    print("symbolic derivation (once, not in the times above): "
-          + ", ".join(f"{k} {v:.2f} s" for k, v in derivation.items())
-          + f" (cap {CAP_S:g} s)")
-    print("differences between the contenders are the integrators' own errors at rtol 1e-8 "
-          "(different 5(4) pairs and step sequences), not a disagreement of the equations")
-    print(f"the explicit formula in JAX is {best / cs[0].median:.0f}x faster than the peer on one "
-          f"simulation and {loop / explicit_batch.median:.0f}x on the batch: the ceiling of the "
-          "speedup targets on this machine")
+    print(
+        "symbolic derivation (once, not in the times above): "
+        + ", ".join(f"{k} {v:.2f} s" for k, v in derivation.items())
+        + f" (cap {CAP_S:g} s)"
+    )
+    print(
+        "differences between the contenders are the integrators' own errors at rtol 1e-8 "
+        "(different 5(4) pairs and step sequences), not a disagreement of the equations"
+    )
+    print(
+        f"the explicit formula in JAX is {best / cs[0].median:.0f}x faster than the peer on one "
+        f"simulation and {loop / explicit_batch.median:.0f}x on the batch: the ceiling of the "
+        "speedup targets on this machine"
+    )
     return [
-        ("sympy peer", "jaxlag simulate (compiled), 1 simulation", "speedup", speedup_single,
-         TARGET_SINGLE, ">="),
-        ("sympy peer", "jaxlag simulate, plain call, 1 simulation", "speedup", best / plain,
-         TARGET_SINGLE, ">="),
-        ("sympy peer", f"jaxlag simulate_batch, B={BATCH}, vs loop", "speedup", speedup_batch,
-         TARGET_BATCH, ">="),
+        (
+            "sympy peer",
+            "jaxlag simulate (compiled), 1 simulation",
+            "speedup",
+            speedup_single,
+            TARGET_SINGLE,
+            ">=",
+        ),
+        (
+            "sympy peer",
+            "jaxlag simulate, plain call, 1 simulation",
+            "speedup",
+            best / plain,
+            TARGET_SINGLE,
+            ">=",
+        ),
+        (
+            "sympy peer",
+            f"jaxlag simulate_batch, B={BATCH}, vs loop",
+            "speedup",
+            speedup_batch,
+            TARGET_BATCH,
+            ">=",
+        ),
     ]
 
 

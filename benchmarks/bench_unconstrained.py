@@ -72,9 +72,17 @@ def with_jaxlag(system, **kwargs):
 
 def solve_jaxlag(system, q0, qd0, nsteps=NSTEPS, **kwargs):
     return jl.simulate(
-        system, q0, qd0, t0=0.0, t1=T, dt0=T / nsteps,
-        saveat=diffrax.SaveAt(t1=True), solver=diffrax.Tsit5(),
-        stepsize_controller=diffrax.ConstantStepSize(), max_steps=nsteps + 1, **kwargs,
+        system,
+        q0,
+        qd0,
+        t0=0.0,
+        t1=T,
+        dt0=T / nsteps,
+        saveat=diffrax.SaveAt(t1=True),
+        solver=diffrax.Tsit5(),
+        stepsize_controller=diffrax.ConstantStepSize(),
+        max_steps=nsteps + 1,
+        **kwargs,
     ).q
 
 
@@ -157,9 +165,16 @@ def chain_initial_state(n):
 # ----------------------------------------------------------------------------- driver
 def _row(system, n, c, ref_b, ref_a=None, nsteps=NSTEPS):
     us = c.median / nsteps * 1e6
-    return [system, n, c.name, us, c.median / ref_b.median,
-            (c.median / ref_a.median) if ref_a is not None else float("nan"),
-            c.compile_s, 100 * common.spread(c)]
+    return [
+        system,
+        n,
+        c.name,
+        us,
+        c.median / ref_b.median,
+        (c.median / ref_a.median) if ref_a is not None else float("nan"),
+        c.compile_s,
+        100 * common.spread(c),
+    ]
 
 
 def _agreement(contenders, reference):
@@ -175,7 +190,8 @@ def run():
     qd0 = jnp.array([0.3, -1.1])
     system = jl.System(double_pendulum_lagrangian)
     cs = [
-        common.compile_contender(name, fn, q0, qd0) for name, fn in [
+        common.compile_contender(name, fn, q0, qd0)
+        for name, fn in [
             ("(a) explicit formula", hand(double_pendulum_explicit)),
             ("(b) M, jnp.linalg.solve", hand(double_pendulum_solve)),
             ("jaxlag", with_jaxlag(system)),
@@ -197,12 +213,12 @@ def run():
         natural = jl.System(chain_lagrangian)
         quadratic = jl.System(make_chain_quadratic_lagrangian(n))
         cs = [
-            common.compile_contender(name, fn, q0, qd0) for name, fn in [
+            common.compile_contender(name, fn, q0, qd0)
+            for name, fn in [
                 ("(b) M, jnp.linalg.solve", hand(make_chain_solve(n))),
                 ("jaxlag, L by cumsum", with_jaxlag(natural)),
                 ("jaxlag, L by cumsum, no check", with_jaxlag(natural, check_initial_state=False)),
-                ("jaxlag, L = ½q̇ᵀM(q)q̇ − V, no check",
-                 with_jaxlag(quadratic, check_initial_state=False)),
+                ("jaxlag, L = ½q̇ᵀM(q)q̇ − V, no check", with_jaxlag(quadratic, check_initial_state=False)),
             ]
         ]
         common.time_alternating(cs)
@@ -218,8 +234,10 @@ def run():
         ["system", "N", "contender", "µs/step", "x(b)", "x(a)", "compile s", "iqr ±%"],
         rows,
     )
-    print("\nagreement with the reference, max |Δq(T)|: "
-          + ", ".join(f"{k}: {v:.1e}" for k, v in errors.items()))
+    print(
+        "\nagreement with the reference, max |Δq(T)|: "
+        + ", ".join(f"{k}: {v:.1e}" for k, v in errors.items())
+    )
     return verdicts
 
 

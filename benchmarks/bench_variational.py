@@ -84,11 +84,17 @@ def chain(n):
 
 def chaotic_double_pendulum():
     th1, th2, w1, w2 = 1.0, 2.0, 0.5, -0.3
-    q0 = jnp.array([math.sin(th1), -math.cos(th1), math.sin(th1) + math.sin(th2),
-                    -math.cos(th1) - math.cos(th2)])
-    qd0 = jnp.array([w1 * math.cos(th1), w1 * math.sin(th1),
-                     w1 * math.cos(th1) + w2 * math.cos(th2),
-                     w1 * math.sin(th1) + w2 * math.sin(th2)])
+    q0 = jnp.array(
+        [math.sin(th1), -math.cos(th1), math.sin(th1) + math.sin(th2), -math.cos(th1) - math.cos(th2)]
+    )
+    qd0 = jnp.array(
+        [
+            w1 * math.cos(th1),
+            w1 * math.sin(th1),
+            w1 * math.cos(th1) + w2 * math.cos(th2),
+            w1 * math.sin(th1) + w2 * math.sin(th2),
+        ]
+    )
     return jl.System(bc.lagrangian, holonomic=bc.distance_constraints), q0, qd0
 
 
@@ -98,10 +104,20 @@ def kkt(system, solver=None, projection="auto"):
 
     def run(q0, qd0, dt=DT, nsteps=NSTEPS, ts=None):
         saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts)
-        traj = jl.simulate(system, q0, qd0, t0=0.0, t1=nsteps * dt, dt0=dt, saveat=saveat,
-                           solver=solver, stepsize_controller=diffrax.ConstantStepSize(),
-                           max_steps=nsteps + 1, projection=projection,
-                           check_initial_state=False)
+        traj = jl.simulate(
+            system,
+            q0,
+            qd0,
+            t0=0.0,
+            t1=nsteps * dt,
+            dt0=dt,
+            saveat=saveat,
+            solver=solver,
+            stepsize_controller=diffrax.ConstantStepSize(),
+            max_steps=nsteps + 1,
+            projection=projection,
+            check_initial_state=False,
+        )
         return traj
 
     return run
@@ -109,9 +125,16 @@ def kkt(system, solver=None, projection="auto"):
 
 def variational(system, **kwargs):
     def run(q0, qd0, dt=DT, nsteps=NSTEPS, every=None):
-        return simulate_variational(system, q0, qd0, dt=dt, num_steps=nsteps,
-                                    save_every=nsteps if every is None else every,
-                                    check_initial_state=False, **kwargs)
+        return simulate_variational(
+            system,
+            q0,
+            qd0,
+            dt=dt,
+            num_steps=nsteps,
+            save_every=nsteps if every is None else every,
+            check_initial_state=False,
+            **kwargs,
+        )
 
     return run
 
@@ -136,22 +159,33 @@ def cost_per_step():
     cases += [(f"chain N={n}", 2 * n, n, *chain(n)) for n in CHAIN_SIZES]
     for name, n, m, system, q0, qd0 in cases:
         full = name in ("pendulum", "chain N=2")
-        cs = [common.compile_contender(label, lambda a, b, fn=fn: fn(a, b).q[-1], q0, qd0)
-              for label, fn in contenders(system, full)]
+        cs = [
+            common.compile_contender(label, lambda a, b, fn=fn: fn(a, b).q[-1], q0, qd0)
+            for label, fn in contenders(system, full)
+        ]
         common.time_alternating(cs)
         ref = cs[0]
         final = {c.name: c.compiled(*c.args) for c in cs}
         for c in cs:
             us = c.median / NSTEPS * 1e6
             costs[(name, c.name)] = us
-            rows.append([name, n, m, c.name, us, c.median / ref.median,
-                         common.max_abs_diff(final[c.name], final[ref.name]), c.compile_s,
-                         100 * common.spread(c)])
+            rows.append(
+                [
+                    name,
+                    n,
+                    m,
+                    c.name,
+                    us,
+                    c.median / ref.median,
+                    common.max_abs_diff(final[c.name], final[ref.name]),
+                    c.compile_s,
+                    100 * common.spread(c),
+                ]
+            )
     common.print_table(
         f"A. Cost per step: {NSTEPS} fixed steps of h = {DT}, final state only; "
         "ratio against the KKT path with projection (Tsit5)",
-        ["system", "n", "m", "contender", "µs/step", "x(KKT)", "|Δq(T)| vs KKT", "compile s",
-         "iqr ±%"],
+        ["system", "n", "m", "contender", "µs/step", "x(KKT)", "|Δq(T)| vs KKT", "compile s", "iqr ±%"],
         rows,
     )
     return costs
@@ -208,20 +242,40 @@ def power_law(hs, errs):
 def accuracy_and_crossover(costs):
     scale = 0.1 if common.QUICK else 1.0
     problems = [
-        ("pendulum", "pendulum", pendulum, 2000.0 * scale, {
-            "KKT Tsit5 + Projection()": (chunk_kkt, dict(solver=diffrax.Tsit5()),
-                                         (0.08, 0.04, 0.02, 0.01)),
-            "RATTLE": (chunk_variational, {}, (0.02, 0.01, 0.005, 0.0025)),
-            "RATTLE order 4 (3 substeps)": (chunk_variational, dict(order=4),
-                                            (0.04, 0.02, 0.01, 0.005)),
-        }),
-        ("double pendulum (chaotic)", "chain N=2", chaotic_double_pendulum, 1000.0 * scale, {
-            "KKT Tsit5 + Projection()": (chunk_kkt, dict(solver=diffrax.Tsit5()),
-                                         (0.04, 0.02, 0.01, 0.005)),
-            "RATTLE": (chunk_variational, {}, (0.01, 0.005, 0.0025, 0.00125)),
-            "RATTLE order 4 (3 substeps)": (chunk_variational, dict(order=4),
-                                            (0.02, 0.01, 0.005, 0.0025)),
-        }),
+        (
+            "pendulum",
+            "pendulum",
+            pendulum,
+            2000.0 * scale,
+            {
+                "KKT Tsit5 + Projection()": (
+                    chunk_kkt,
+                    dict(solver=diffrax.Tsit5()),
+                    (0.08, 0.04, 0.02, 0.01),
+                ),
+                "RATTLE": (chunk_variational, {}, (0.02, 0.01, 0.005, 0.0025)),
+                "RATTLE order 4 (3 substeps)": (chunk_variational, dict(order=4), (0.04, 0.02, 0.01, 0.005)),
+            },
+        ),
+        (
+            "double pendulum (chaotic)",
+            "chain N=2",
+            chaotic_double_pendulum,
+            1000.0 * scale,
+            {
+                "KKT Tsit5 + Projection()": (
+                    chunk_kkt,
+                    dict(solver=diffrax.Tsit5()),
+                    (0.04, 0.02, 0.01, 0.005),
+                ),
+                "RATTLE": (chunk_variational, {}, (0.01, 0.005, 0.0025, 0.00125)),
+                "RATTLE order 4 (3 substeps)": (
+                    chunk_variational,
+                    dict(order=4),
+                    (0.02, 0.01, 0.005, 0.0025),
+                ),
+            },
+        ),
     ]
     for title, cost_key, make, t_max, methods in problems:
         system, q0, qd0 = make()
@@ -284,8 +338,10 @@ def crossover(title, cost_key, fits, horizons, costs):
             candidates.append((eps / (a_rk * h_star**p_rk), label, h_vi))
         t_star, label, h_vi = min(candidates)
         where = "measured range" if t_star <= t_max else "extrapolated"
-        notes.append(f"  ε = {eps:.0e}: {label} (h = {h_vi:.2g}) is cheaper than KKT Tsit5 for "
-                     f"T > T* ≈ {t_star:.2g} ({where})")
+        notes.append(
+            f"  ε = {eps:.0e}: {label} (h = {h_vi:.2g}) is cheaper than KKT Tsit5 for "
+            f"T > T* ≈ {t_star:.2g} ({where})"
+        )
     header = ["ε", "T"]
     for label in fits:
         header += [f"h {label}", "ms"]

@@ -24,8 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 if "jax" in sys.modules:  # pragma: no cover - a guard for misuse
-    print("warning: benchmarks.common imported after jax; XLA_FLAGS may not take effect",
-          file=sys.stderr)
+    print("warning: benchmarks.common imported after jax; XLA_FLAGS may not take effect", file=sys.stderr)
 
 
 def _pin_to_last_core() -> int | None:
@@ -106,8 +105,9 @@ def _sample(c: Contender) -> float:
     return (time.perf_counter() - start) / c.calls_per_sample
 
 
-def time_alternating(contenders: Sequence[Contender], repeats: int = REPEATS,
-                     min_sample_s: float = 0.02) -> None:
+def time_alternating(
+    contenders: Sequence[Contender], repeats: int = REPEATS, min_sample_s: float = 0.02
+) -> None:
     """Fill ``c.samples`` (seconds per call) for each contender, alternating between them."""
     for c in contenders:
         _calibrate(c, min_sample_s)
@@ -128,10 +128,8 @@ def spread(c: Contender) -> float:
 def print_table(title: str, header: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
     """A plain fixed-width table."""
     cells = [[_fmt(x) for x in row] for row in rows]
-    widths = [max(len(h), *(len(r[i]) for r in cells)) if cells else len(h)
-              for i, h in enumerate(header)]
-    line = "  ".join(h.rjust(w) if i else h.ljust(w)
-                     for i, (h, w) in enumerate(zip(header, widths)))
+    widths = [max(len(h), *(len(r[i]) for r in cells)) if cells else len(h) for i, h in enumerate(header)]
+    line = "  ".join(h.rjust(w) if i else h.ljust(w) for i, (h, w) in enumerate(zip(header, widths)))
     print()
     print(title)
     print(line)
@@ -156,9 +154,11 @@ def _fmt(x: Any) -> str:
 def environment_line() -> str:
     import diffrax
 
-    return (f"jax {jax.__version__}, diffrax {diffrax.__version__}, backend "
-            f"{jax.default_backend()}, pinned to core {CORE}, XLA_FLAGS='{os.environ['XLA_FLAGS']}', "
-            f"{REPEATS} alternating rounds, medians")
+    return (
+        f"jax {jax.__version__}, diffrax {diffrax.__version__}, backend "
+        f"{jax.default_backend()}, pinned to core {CORE}, XLA_FLAGS='{os.environ['XLA_FLAGS']}', "
+        f"{REPEATS} alternating rounds, medians"
+    )
 
 
 def max_abs_diff(a, b) -> float:

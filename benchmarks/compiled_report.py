@@ -27,12 +27,13 @@ from . import bench_unconstrained as bu
 
 
 def summary(text: str, n: int) -> str:
-    calls = sorted(set(re.findall(r'custom_call_target="([^"]+)"', text))
-                   - {"xla_ffi_python_cpu_callback"})
+    calls = sorted(set(re.findall(r'custom_call_target="([^"]+)"', text)) - {"xla_ffi_python_cpu_callback"})
     carried = sum(f"pred[{n},{n}]" in line for line in text.splitlines() if " while(" in line)
-    return (f"fusions {text.count('fusion(')}, while {text.count(' while(')}, "
-            f"reduce-window {text.count('reduce-window(')}, dot {text.count(' dot(')}, "
-            f"LAPACK {', '.join(calls) or '-'}, while loops carrying pred[{n},{n}]: {carried}")
+    return (
+        f"fusions {text.count('fusion(')}, while {text.count(' while(')}, "
+        f"reduce-window {text.count('reduce-window(')}, dot {text.count(' dot(')}, "
+        f"LAPACK {', '.join(calls) or '-'}, while loops carrying pred[{n},{n}]: {carried}"
+    )
 
 
 def report(name, system, q, qd, constrained):
@@ -56,12 +57,18 @@ def main():
     for n in bu.CHAIN_SIZES:
         q, qd = bu.chain_initial_state(n)
         report(f"chain N={n}, L by cumsum", jl.System(bu.chain_lagrangian), q, qd, False)
-        report(f"chain N={n}, L = ½q̇ᵀM(q)q̇ − V", jl.System(bu.make_chain_quadratic_lagrangian(n)),
-               q, qd, False)
+        report(
+            f"chain N={n}, L = ½q̇ᵀM(q)q̇ − V", jl.System(bu.make_chain_quadratic_lagrangian(n)), q, qd, False
+        )
     for n in bc.SIZES:
         q, qd = bc.initial_state(n)
-        report(f"Cartesian chain N={n} (n={2 * n})",
-               jl.System(bc.lagrangian, holonomic=bc.distance_constraints), q, qd, True)
+        report(
+            f"Cartesian chain N={n} (n={2 * n})",
+            jl.System(bc.lagrangian, holonomic=bc.distance_constraints),
+            q,
+            qd,
+            True,
+        )
 
 
 if __name__ == "__main__":

@@ -46,8 +46,15 @@ def case_event_unconstrained(mode):
 
 def case_nan_args(mode):
     s = cartesian_pendulum()
-    run = lambda g: jl.simulate(s, jnp.array([1.0, 0.0]), jnp.zeros(2), TS,  # noqa: E731
-                                args={"g": g, "l": 1.0}).q
+    run = lambda g: (
+        jl.simulate(
+            s,
+            jnp.array([1.0, 0.0]),
+            jnp.zeros(2),
+            TS,  # noqa: E731
+            args={"g": g, "l": 1.0},
+        ).q
+    )
     return _mode(run, jnp.array(jnp.nan), mode)
 
 
@@ -67,16 +74,30 @@ def case_singular_midrun(mode):
 
 def case_nan_length(mode):
     s = cartesian_pendulum()
-    run = lambda l: jl.simulate(s, jnp.array([1.0, 0.0]), jnp.zeros(2), TS,  # noqa: E731
-                                args={"g": 9.81, "l": l}).q
+    run = lambda l: (
+        jl.simulate(
+            s,
+            jnp.array([1.0, 0.0]),
+            jnp.zeros(2),
+            TS,  # noqa: E731
+            args={"g": 9.81, "l": l},
+        ).q
+    )
     return _mode(run, jnp.array(jnp.nan), mode)
 
 
 def case_batch_one_nan(mode):
     s = cartesian_pendulum()
     q0s = jnp.array([[1.0, 0.0], [jnp.nan, 0.0], [0.0, -1.0]])
-    run = lambda q0s: jl.simulate_batch(s, q0s, jnp.zeros(2), TS,  # noqa: E731
-                                        args={"g": 9.81, "l": 1.0}).q
+    run = lambda q0s: (
+        jl.simulate_batch(
+            s,
+            q0s,
+            jnp.zeros(2),
+            TS,  # noqa: E731
+            args={"g": 9.81, "l": 1.0},
+        ).q
+    )
     if mode == "vmap":
         return "n/a"
     return _mode(run, q0s, "jit" if mode == "jit" else "eager")
@@ -157,7 +178,7 @@ def describe(exc: BaseException, width: int) -> str:
     text = " ".join(str(exc).split())
     marker = "jaxlag:"
     if marker in text:  # under jit the library's text sits at the end of a runtime error
-        text = "…" + text[text.index(marker):]
+        text = "…" + text[text.index(marker) :]
     return f"{type(exc).__name__}: {text[:width]}"
 
 

@@ -32,5 +32,4 @@ def print_verdicts(verdicts):
         sense = v[5] if len(v) > 5 else "<="
         ok = value <= target if sense == "<=" else value >= target
         status = "ok  " if ok else "MISS"
-        print(f"  {status} {system:18s} {name:46s} {kind:12s} = {value:7.2f} "
-              f"(target {sense} {target:g})")
+        print(f"  {status} {system:18s} {name:46s} {kind:12s} = {value:7.2f} (target {sense} {target:g})")

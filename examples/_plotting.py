@@ -39,5 +39,7 @@ def report(true, result):
     for name, value in true.items():
         fitted = float(result.params[name])
         se = float(result.standard_errors[name])
-        print(f"  {name:>4}: true {value:.6f}   recovered {fitted:.6f} ± {se:.6f}"
-              f"   ({(fitted - value) / se:+.2f} standard errors)")
+        print(
+            f"  {name:>4}: true {value:.6f}   recovered {fitted:.6f} ± {se:.6f}"
+            f"   ({(fitted - value) / se:+.2f} standard errors)"
+        )

@@ -60,10 +60,14 @@ def main():
     t_release, theta_release = float(np.asarray(traj.events.time)[0]), float(release[1])
     expected = float(np.arccos(2.0 / 3.0 * np.cos(theta0)))
     print(f"events: {traj.events.kinds()[:2]}")
-    print(f"normal force vs m g (3cos θ − 2cos θ0) while on the sphere: max error "
-          f"{np.max(np.abs(np.where(on, normal_force - closed_form, 0.0))):.1e}")
-    print(f"released at t = {t_release:.6f} s, θ = {np.degrees(theta_release):.8f}° "
-          f"(closed form arccos(2/3 cos θ0) = {np.degrees(expected):.8f}°)")
+    print(
+        f"normal force vs m g (3cos θ − 2cos θ0) while on the sphere: max error "
+        f"{np.max(np.abs(np.where(on, normal_force - closed_form, 0.0))):.1e}"
+    )
+    print(
+        f"released at t = {t_release:.6f} s, θ = {np.degrees(theta_release):.8f}° "
+        f"(closed form arccos(2/3 cos θ0) = {np.degrees(expected):.8f}°)"
+    )
     print(f"energy drift across the release: {np.max(np.abs(energy - energy[0])):.1e}")
 
     # --- 2. fit g and R from noisy camera data taken while the particle is on the sphere ----------
@@ -73,15 +77,24 @@ def main():
     observed = clean + noise * np.random.default_rng(0).standard_normal(clean.shape)
     on_the_sphere = jl.System(lagrangian, holonomic=on_sphere)  # bilateral while in contact
     guess = {"g": 8.0, "R": 2.4}
-    result = jl.fit(on_the_sphere, guess, jl.Experiment(window, observed, q0, qd0),
-                    observe=camera, args={"m": 1.0},
-                    transforms={"g": jl.Positive(), "R": jl.Positive()})
-    print(f"fit: Levenberg–Marquardt, {result.num_steps} steps, residual std "
-          f"{float(result.residual_std):.4f} (noise {noise})")
+    result = jl.fit(
+        on_the_sphere,
+        guess,
+        jl.Experiment(window, observed, q0, qd0),
+        observe=camera,
+        args={"m": 1.0},
+        transforms={"g": jl.Positive(), "R": jl.Positive()},
+    )
+    print(
+        f"fit: Levenberg–Marquardt, {result.num_steps} steps, residual std "
+        f"{float(result.residual_std):.4f} (noise {noise})"
+    )
     for name in ("g", "R"):
         value, se = float(result.params[name]), float(result.standard_errors[name])
-        print(f"  {name}: true {true[name]:.4f}   start {guess[name]:.4f}   recovered {value:.4f} "
-              f"± {se:.4f}   ({(value - true[name]) / se:+.2f} standard errors)")
+        print(
+            f"  {name}: true {true[name]:.4f}   start {guess[name]:.4f}   recovered {value:.4f} "
+            f"± {se:.4f}   ({(value - true[name]) / se:+.2f} standard errors)"
+        )
 
     try:
         import matplotlib
@@ -92,18 +105,25 @@ def main():
         print("matplotlib not installed: skipping the plot (pip install 'jaxlag[examples]')")
         return
     fitted_args = {"m": 1.0, **result.params}
-    fitted = np.asarray(camera_path(
-        jl.simulate(on_the_sphere, *jl.consistent_initial_state(on_the_sphere, q0, qd0, 0.0,
-                                                                fitted_args),
-                    window, args=fitted_args).q))
+    fitted = np.asarray(
+        camera_path(
+            jl.simulate(
+                on_the_sphere,
+                *jl.consistent_initial_state(on_the_sphere, q0, qd0, 0.0, fitted_args),
+                window,
+                args=fitted_args,
+            ).q
+        )
+    )
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
     xy = np.asarray(camera_path(q))
     circle = np.linspace(0, 2 * np.pi, 200)
     axes[0].plot(true["R"] * np.sin(circle), true["R"] * np.cos(circle), "k-", lw=0.5)
     axes[0].plot(xy[on, 0], xy[on, 1], "b-", label="on the sphere")
     axes[0].plot(xy[~on, 0], xy[~on, 1], "r-", label="free flight")
-    axes[0].plot(*(release[0] * np.array([np.sin(release[1]), np.cos(release[1])])), "ko",
-                 label="release (event)")
+    axes[0].plot(
+        *(release[0] * np.array([np.sin(release[1]), np.cos(release[1])])), "ko", label="release (event)"
+    )
     axes[0].set(aspect="equal", title="path", xlim=(-0.5, 3.5), ylim=(-1.5, 2.5))
     axes[0].legend(fontsize=8)
     axes[1].plot(np.degrees(theta), normal_force, label="λ (jaxlag multiplier)")
@@ -115,8 +135,9 @@ def main():
     axes[2].plot(window, observed[:, 1], ".", ms=2, label="y observed")
     axes[2].plot(window, fitted[:, 0], "-", label="x fitted")
     axes[2].plot(window, fitted[:, 1], "-", label="y fitted")
-    axes[2].set(xlabel="t [s]", title=f"fit: g = {float(result.params['g']):.3f}, "
-                                      f"R = {float(result.params['R']):.4f}")
+    axes[2].set(
+        xlabel="t [s]", title=f"fit: g = {float(result.params['g']):.3f}, R = {float(result.params['R']):.4f}"
+    )
     axes[2].legend(fontsize=8)
     fig.tight_layout()
     out = Path(__file__).with_name("sphere_demo.png")

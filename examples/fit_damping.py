@@ -32,13 +32,24 @@ def main():
     clean = jl.simulate(system, q0, qd0, ts, args=true).q
     observed = clean + 0.01 * np.random.default_rng(3).standard_normal(clean.shape)
 
-    result = jl.fit(system, {"k": 3.0, "c": 0.1}, jl.Experiment(ts, observed, q0, qd0),
-                    transforms={"k": jl.Positive(), "c": jl.Positive()})
+    result = jl.fit(
+        system,
+        {"k": 3.0, "c": 0.1},
+        jl.Experiment(ts, observed, q0, qd0),
+        transforms={"k": jl.Positive(), "c": jl.Positive()},
+    )
     print(f"Levenberg–Marquardt: {result.num_steps} steps")
     report(true, result)
     fitted = jl.simulate(system, q0, qd0, ts, args=result.params).q
-    plot_fit(Path(__file__).with_name("fit_damping.png"), ts, observed, fitted,
-             result.loss_history, ["q"], "damped oscillator: data vs fitted model")
+    plot_fit(
+        Path(__file__).with_name("fit_damping.png"),
+        ts,
+        observed,
+        fitted,
+        result.loss_history,
+        ["q"],
+        "damped oscillator: data vs fitted model",
+    )
 
 
 if __name__ == "__main__":

@@ -33,8 +33,12 @@ def double_pendulum(q, qd, args):
 
 
 def second_bob(q, qd, args):
-    return jnp.array([args["l1"] * jnp.sin(q[0]) + args["l2"] * jnp.sin(q[1]),
-                      -args["l1"] * jnp.cos(q[0]) - args["l2"] * jnp.cos(q[1])])
+    return jnp.array(
+        [
+            args["l1"] * jnp.sin(q[0]) + args["l2"] * jnp.sin(q[1]),
+            -args["l1"] * jnp.cos(q[0]) - args["l2"] * jnp.cos(q[1]),
+        ]
+    )
 
 
 def inverse_kinematics(p, l1, l2, branch):
@@ -54,14 +58,16 @@ def segment_guesses(system, ts, observed, guess, segments):
     for start in range(0, len(ts) - 1, m):
         best = None
         for branch in (1.0, -1.0):
-            angles = jnp.unwrap(inverse_kinematics(observed[start:start + 3], guess["l1"],
-                                                   guess["l2"], branch), axis=0)
+            angles = jnp.unwrap(
+                inverse_kinematics(observed[start : start + 3], guess["l1"], guess["l2"], branch), axis=0
+            )
             q = angles[0]
             qd = (-3 * angles[0] + 4 * angles[1] - angles[2]) / (2 * dt)
-            window = ts[start:start + m + 1]
+            window = ts[start : start + m + 1]
             pred = jax.vmap(lambda x: second_bob(x, None, guess))(
-                jl.simulate(system, q, qd, window, args=guess, throw=False).q)
-            error = float(jnp.nansum((pred - observed[start:start + m + 1]) ** 2))
+                jl.simulate(system, q, qd, window, args=guess, throw=False).q
+            )
+            error = float(jnp.nansum((pred - observed[start : start + m + 1]) ** 2))
             if best is None or error < best[0]:
                 best = (error, q, qd)
         qs.append(best[1])
@@ -80,42 +86,67 @@ def main():
     experiment = jl.Experiment(ts, observed, q0, qd0)
     positive = {"l1": jl.Positive(), "l2": jl.Positive()}
 
-    single = jl.fit(system, guess, experiment, observe=second_bob, transforms=positive,
-                    max_steps=60)
-    print(f"single shooting: {single.num_steps} steps, converged={single.converged}, "
-          f"final loss {single.loss_history[-1]:.3g}")
+    single = jl.fit(system, guess, experiment, observe=second_bob, transforms=positive, max_steps=60)
+    print(
+        f"single shooting: {single.num_steps} steps, converged={single.converged}, "
+        f"final loss {single.loss_history[-1]:.3g}"
+    )
     report(true, single)
 
     segments = 16
     states = segment_guesses(system, ts, observed, guess, segments)
-    multiple = jl.fit(system, guess, experiment, observe=second_bob, transforms=positive,
-                      shooting_segments=segments, segment_states=states,
-                      estimate_initial_state=True, periodic_coordinates=(0, 1), max_steps=200)
-    print(f"multiple shooting ({segments} segments): {multiple.num_steps} steps, "
-          f"converged={multiple.converged}, final loss {multiple.loss_history[-1]:.3g}")
+    multiple = jl.fit(
+        system,
+        guess,
+        experiment,
+        observe=second_bob,
+        transforms=positive,
+        shooting_segments=segments,
+        segment_states=states,
+        estimate_initial_state=True,
+        periodic_coordinates=(0, 1),
+        max_steps=200,
+    )
+    print(
+        f"multiple shooting ({segments} segments): {multiple.num_steps} steps, "
+        f"converged={multiple.converged}, final loss {multiple.loss_history[-1]:.3g}"
+    )
     report(true, multiple)
 
     # The fitted model, segment by segment from the fitted segment states.
     m = (len(ts) - 1) // segments
     pieces = []
     for k in range(segments):
-        window = ts[k * m:(k + 1) * m + 1]
-        seg = jl.simulate(system, multiple.segment_states[0][0, k], multiple.segment_states[1][0, k],
-                          window, args=multiple.params)
+        window = ts[k * m : (k + 1) * m + 1]
+        seg = jl.simulate(
+            system,
+            multiple.segment_states[0][0, k],
+            multiple.segment_states[1][0, k],
+            window,
+            args=multiple.params,
+        )
         y = jax.vmap(lambda q: second_bob(q, None, multiple.params))(seg.q)
         pieces.append(y if k == segments - 1 else y[:-1])  # segments share boundary points
     fitted = jnp.concatenate(pieces)
     single_fit = jax.vmap(lambda q: second_bob(q, None, single.params))(
-        jl.simulate(system, q0, qd0, ts, args=single.params).q)
+        jl.simulate(system, q0, qd0, ts, args=single.params).q
+    )
 
     def overlay(ax):
         ax.plot(ts, single_fit[:, 0], ":", lw=1, label="x single shooting")
         for k in range(1, segments):
             ax.axvline(float(ts[k * m]), c="0.85", lw=0.5, zorder=0)
 
-    plot_fit(Path(__file__).with_name("fit_double_pendulum.png"), ts, observed, fitted,
-             multiple.loss_history, ["x", "y"],
-             "double pendulum, 2nd bob: multiple-shooting fit (16 segments)", extra=overlay)
+    plot_fit(
+        Path(__file__).with_name("fit_double_pendulum.png"),
+        ts,
+        observed,
+        fitted,
+        multiple.loss_history,
+        ["x", "y"],
+        "double pendulum, 2nd bob: multiple-shooting fit (16 segments)",
+        extra=overlay,
+    )
 
 
 if __name__ == "__main__":

@@ -41,17 +41,36 @@ def main():
     observed = clean + 0.005 * np.random.default_rng(2).standard_normal(clean.shape)
 
     # Start from R = 1.0: each initial state is projected onto the current hoop by the fit.
-    result = jl.fit(system, {"R": 1.0}, jl.Experiment(ts, observed, q0, qd0), observe=camera,
-                    args={"g": 9.81}, transforms={"R": jl.Positive()})
+    result = jl.fit(
+        system,
+        {"R": 1.0},
+        jl.Experiment(ts, observed, q0, qd0),
+        observe=camera,
+        args={"g": 9.81},
+        transforms={"R": jl.Positive()},
+    )
     print(f"Levenberg–Marquardt: {result.num_steps} steps")
     report(true, result)
-    fit_traj = jl.simulate(system, *jl.consistent_initial_state(
-        system, q0, qd0, 0.0, {"g": 9.81, **result.params}), ts, args={"g": 9.81, **result.params})
+    fit_traj = jl.simulate(
+        system,
+        *jl.consistent_initial_state(system, q0, qd0, 0.0, {"g": 9.81, **result.params}),
+        ts,
+        args={"g": 9.81, **result.params},
+    )
     fitted = jax.vmap(lambda q: camera(q, None))(fit_traj.q)
-    print(f"normal force along the fitted motion: {float(fit_traj.multipliers.min()):.3f} … "
-          f"{float(fit_traj.multipliers.max()):.3f} (λ, sign convention M q̈ = F + Jᵀλ)")
-    plot_fit(Path(__file__).with_name("fit_hoop_radius.png"), ts, observed, fitted,
-             result.loss_history, ["x", "y"], "bead on a hoop: camera data vs fitted model")
+    print(
+        f"normal force along the fitted motion: {float(fit_traj.multipliers.min()):.3f} … "
+        f"{float(fit_traj.multipliers.max()):.3f} (λ, sign convention M q̈ = F + Jᵀλ)"
+    )
+    plot_fit(
+        Path(__file__).with_name("fit_hoop_radius.png"),
+        ts,
+        observed,
+        fitted,
+        result.loss_history,
+        ["x", "y"],
+        "bead on a hoop: camera data vs fitted model",
+    )
 
 
 if __name__ == "__main__":

@@ -32,15 +32,30 @@ def main():
     clean = jax.vmap(lambda q: bob(q, None, true))(jl.simulate(system, q0, qd0, ts, args=true).q)
     observed = clean + 0.01 * np.random.default_rng(1).standard_normal(clean.shape)
 
-    result = jl.fit(system, {"g": 9.81 * 1.2, "l": 0.8 * 0.8}, jl.Experiment(ts, observed, q0, qd0),
-                    observe=bob, transforms={"g": jl.Positive(), "l": jl.Positive()})
-    print(f"Levenberg–Marquardt: {result.num_steps} steps, residual std {float(result.residual_std):.4f}"
-          " (noise 0.01)")
+    result = jl.fit(
+        system,
+        {"g": 9.81 * 1.2, "l": 0.8 * 0.8},
+        jl.Experiment(ts, observed, q0, qd0),
+        observe=bob,
+        transforms={"g": jl.Positive(), "l": jl.Positive()},
+    )
+    print(
+        f"Levenberg–Marquardt: {result.num_steps} steps, residual std {float(result.residual_std):.4f}"
+        " (noise 0.01)"
+    )
     report(true, result)
     fitted = jax.vmap(lambda q: bob(q, None, result.params))(
-        jl.simulate(system, q0, qd0, ts, args=result.params).q)
-    plot_fit(Path(__file__).with_name("fit_pendulum.png"), ts, observed, fitted,
-             result.loss_history, ["x", "y"], "pendulum bob: camera data vs fitted model")
+        jl.simulate(system, q0, qd0, ts, args=result.params).q
+    )
+    plot_fit(
+        Path(__file__).with_name("fit_pendulum.png"),
+        ts,
+        observed,
+        fitted,
+        result.loss_history,
+        ["x", "y"],
+        "pendulum bob: camera data vs fitted model",
+    )
 
 
 if __name__ == "__main__":

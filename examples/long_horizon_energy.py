@@ -72,15 +72,26 @@ def run(name, system, q0, qd0, dt):
     curves = {}
     contenders = {
         "RATTLE (order 2)": lambda: simulate_variational(
-            system, q0, qd0, dt=dt, num_steps=NUM_STEPS, save_every=every),
+            system, q0, qd0, dt=dt, num_steps=NUM_STEPS, save_every=every
+        ),
         "RATTLE, order-4 composition": lambda: simulate_variational(
-            system, q0, qd0, dt=dt, num_steps=NUM_STEPS, save_every=every, order=4),
+            system, q0, qd0, dt=dt, num_steps=NUM_STEPS, save_every=every, order=4
+        ),
     }
-    for label, solver in [("explicit midpoint RK (order 2)", diffrax.Midpoint()),
-                          ("Tsit5 (order 5)", diffrax.Tsit5())]:
+    for label, solver in [
+        ("explicit midpoint RK (order 2)", diffrax.Midpoint()),
+        ("Tsit5 (order 5)", diffrax.Tsit5()),
+    ]:
         contenders[label] = lambda solver=solver: jl.simulate(
-            system, q0, qd0, ts, solver=solver, dt0=dt,
-            stepsize_controller=diffrax.ConstantStepSize(), max_steps=NUM_STEPS + 10)
+            system,
+            q0,
+            qd0,
+            ts,
+            solver=solver,
+            dt0=dt,
+            stepsize_controller=diffrax.ConstantStepSize(),
+            max_steps=NUM_STEPS + 10,
+        )
     print(f"\n{name}: {NUM_STEPS:,} steps of h = {dt:.4g} (t = 0 … {float(ts[-1]):.0f})")
     print(f"  {'method':32s} {'first 10 %':>11s} {'last 10 %':>11s} {'growth':>8s} {'wall s':>7s}")
     for label, simulate in contenders.items():
@@ -95,8 +106,7 @@ def run(name, system, q0, qd0, dt):
             note = f"  blew up: non-finite from t ≈ {ts[np.argmax(~np.isfinite(err))]:.0f}"
         elif system.holonomic is not None:
             f, f_dot, _ = traj.constraint_residuals
-            note = (f"  max|f| {float(jnp.max(jnp.abs(f))):.1e}, "
-                    f"max|ḟ| {float(jnp.max(jnp.abs(f_dot))):.1e}")
+            note = f"  max|f| {float(jnp.max(jnp.abs(f))):.1e}, max|ḟ| {float(jnp.max(jnp.abs(f_dot))):.1e}"
         print(f"  {label:32s} {early:11.2e} {late:11.2e} {late / early:8.2f} {wall:7.1f}{note}")
         # The running maximum max_{s ≤ t} |E(s) − E(0)|: a plateau when bounded, a line of
         # slope one (on log-log axes) for a linear drift.
@@ -125,15 +135,21 @@ def main():
             ax.loglog(t[1:], np.maximum(err[1:], 1e-17), label=label, **styles[label])
             if blow_up is not None:
                 ax.axvline(float(blow_up), color=styles[label]["color"], ls=":", lw=1)
-                ax.annotate("non-finite from here", (float(blow_up), 1e-4), rotation=90,
-                            ha="right", va="bottom", fontsize=7, color=styles[label]["color"])
+                ax.annotate(
+                    "non-finite from here",
+                    (float(blow_up), 1e-4),
+                    rotation=90,
+                    ha="right",
+                    va="bottom",
+                    fontsize=7,
+                    color=styles[label]["color"],
+                )
         ax.set_title(f"{name}\n{NUM_STEPS:,} steps, h = {dt:.4g}")
         ax.set_xlabel("t")
         ax.set_ylabel("max over [0, t] of |E − E(0)| / |E(0)|")
         ax.grid(True, which="major", alpha=0.3)
     axes[0].legend(loc="lower right", fontsize=8)
-    fig.suptitle("Energy error at a fixed step: bounded (variational) vs secular drift "
-                 "(explicit RK)")
+    fig.suptitle("Energy error at a fixed step: bounded (variational) vs secular drift (explicit RK)")
     fig.tight_layout()
     out = Path(__file__).with_name("long_horizon_energy.png")
     fig.savefig(out, dpi=120)

@@ -27,19 +27,28 @@ jax.config.update("jax_enable_x64", True)
 def top_nutation():
     top = systems.heavy_top("euler")
     args = dict(systems.heavy_top.defaults)
-    q0, qd0 = jnp.array([0.0, 0.5, 0.0]), jnp.array([0.0, 0.0, 150.0])   # spinning, released
+    q0, qd0 = jnp.array([0.0, 0.5, 0.0]), jnp.array([0.0, 0.0, 150.0])  # spinning, released
     ts = jnp.linspace(0.0, 1.0, 401)
     traj = jl.simulate(top, q0, qd0, ts, args=args)
-    drift = {name: float(np.ptp(series) / np.max(np.abs(series)))
-             for name, series in (("p_phi", traj.momenta[:, 0]), ("p_psi", traj.momenta[:, 2]),
-                                  ("energy", traj.energy))}
-    print("heavy top: tilt θ between "
-          f"{float(traj.q[:, 1].min()):.4f} and {float(traj.q[:, 1].max()):.4f} rad; relative drift "
-          + ", ".join(f"{k} {v:.1e}" for k, v in drift.items()))
+    drift = {
+        name: float(np.ptp(series) / np.max(np.abs(series)))
+        for name, series in (
+            ("p_phi", traj.momenta[:, 0]),
+            ("p_psi", traj.momenta[:, 2]),
+            ("energy", traj.energy),
+        )
+    }
+    print(
+        "heavy top: tilt θ between "
+        f"{float(traj.q[:, 1].min()):.4f} and {float(traj.q[:, 1].max()):.4f} rad; relative drift "
+        + ", ".join(f"{k} {v:.1e}" for k, v in drift.items())
+    )
     # fast-top estimate of the mean precession rate: m g l / (I3 ω3)
     estimate = args["m"] * args["g"] * args["l"] / (args["I3"] * 150.0)
-    print(f"  mean precession rate {float(traj.q[-1, 0] / ts[-1]):.4f} rad/s "
-          f"(fast-top estimate m g l/(I3 ω3) = {estimate:.4f})")
+    print(
+        f"  mean precession rate {float(traj.q[-1, 0] / ts[-1]):.4f} rad/s "
+        f"(fast-top estimate m g l/(I3 ω3) = {estimate:.4f})"
+    )
     return ts, traj
 
 
@@ -48,8 +57,10 @@ def bicycle_spectrum():
     spectrum = jax.jit(jax.vmap(systems.bicycle_eigenvalues))
     start = time.perf_counter()
     values = np.asarray(spectrum(speeds))
-    print(f"bicycle: {len(speeds)} linearizations in {time.perf_counter() - start:.1f} s "
-          "(including compilation)")
+    print(
+        f"bicycle: {len(speeds)} linearizations in {time.perf_counter() - start:.1f} s "
+        "(including compilation)"
+    )
     weave = np.array([np.max(np.where(np.abs(v.imag) > 1e-9, v.real, -np.inf)) for v in values])
     capsize = np.array([np.max(np.where(np.abs(v.imag) <= 1e-9, v.real, -np.inf)) for v in values])
     speeds = np.asarray(speeds)
@@ -59,12 +70,17 @@ def bicycle_spectrum():
         k = inside[np.flatnonzero(np.diff(np.sign(series[inside])) != 0)[0]]
         return speeds[k] - series[k] * (speeds[k + 1] - speeds[k]) / (series[k + 1] - series[k])
 
-    print(f"  weave speed ≈ {crossing(weave, 3.0, 6.0):.3f} m/s, capsize speed ≈ "
-          f"{crossing(capsize, 5.0, 8.0):.3f} m/s (published 4.292, 6.024; linear "
-          "interpolation on a 0.1 m/s grid)")
+    print(
+        f"  weave speed ≈ {crossing(weave, 3.0, 6.0):.3f} m/s, capsize speed ≈ "
+        f"{crossing(capsize, 5.0, 8.0):.3f} m/s (published 4.292, 6.024; linear "
+        "interpolation on a 0.1 m/s grid)"
+    )
     at5 = values[np.argmin(np.abs(speeds - 5.0))]
-    print("  eigenvalues at 5 m/s: " + ", ".join(f"{complex(v):.4f}" for v in at5)
-          + "  (published −14.0784, −0.7753 ± 4.4649i, −0.3229)")
+    print(
+        "  eigenvalues at 5 m/s: "
+        + ", ".join(f"{complex(v):.4f}" for v in at5)
+        + "  (published −14.0784, −0.7753 ± 4.4649i, −0.3229)"
+    )
     return speeds, values
 
 
@@ -83,8 +99,12 @@ def plot(ts, traj, speeds, values, path):
     for k in range(values.shape[1]):
         ax2.plot(speeds, values[:, k].real, "k.", ms=2)
         ax2.plot(speeds, np.abs(values[:, k].imag), "b.", ms=1)
-    ax2.set(xlabel="speed v [m/s]", ylabel="eigenvalue", ylim=(-10, 10),
-            title="Whipple bicycle: Re s (black), |Im s| (blue)")
+    ax2.set(
+        xlabel="speed v [m/s]",
+        ylabel="eigenvalue",
+        ylim=(-10, 10),
+        title="Whipple bicycle: Re s (black), |Im s| (blue)",
+    )
     ax2.axhline(0.0, color="gray", lw=0.5)
     fig.tight_layout()
     fig.savefig(path, dpi=100)

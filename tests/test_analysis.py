@@ -54,6 +54,7 @@ def cone_closed_form(m, g, alpha, lz):
 # Pendulums: normal modes
 # --------------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("form, guess", [("generalized", [0.4]), ("cartesian", [0.5, -1.8])])
 def test_pendulum_normal_mode(form, guess):
     system, args = PENDULUM[form], {"l": 2.0}
@@ -69,8 +70,7 @@ def test_pendulum_normal_mode(form, guess):
     assert lin.stability() == "stable" and bool(modes.is_stable())
 
 
-@pytest.mark.parametrize("form, rest", [("generalized", [0.0, 0.0]),
-                                        ("cartesian", [0.0, -1.5, 0.0, -3.0])])
+@pytest.mark.parametrize("form, rest", [("generalized", [0.0, 0.0]), ("cartesian", [0.0, -1.5, 0.0, -3.0])])
 def test_double_pendulum_normal_modes(form, rest):
     # Equal masses and lengths: M = m l² [[2, 1], [1, 1]], K = m g l [[2, 0], [0, 1]];
     # det(K − ω²M) = 0 gives ω² = (2 ∓ √2) g/l, with θ₂/θ₁ = +√2 (slow) and −√2 (fast).
@@ -79,8 +79,7 @@ def test_double_pendulum_normal_modes(form, rest):
     modes = analysis.normal_modes(system, rest, args=args)
     expected = np.sqrt(np.array([2 - math.sqrt(2), 2 + math.sqrt(2)]) * G / 1.5)
     np.testing.assert_allclose(modes.frequencies, expected, rtol=1e-11)
-    np.testing.assert_allclose(analysis.linearize(system, rest, args=args).frequencies, expected,
-                               rtol=1e-11)
+    np.testing.assert_allclose(analysis.linearize(system, rest, args=args).frequencies, expected, rtol=1e-11)
     shapes = np.asarray(modes.shapes)
     if form == "cartesian":  # small angles: θ₁ ≈ x₁/l, θ₂ ≈ (x₂ − x₁)/l
         shapes = np.stack([shapes[0], shapes[2] - shapes[0]])
@@ -106,13 +105,15 @@ def test_n_link_normal_modes_match_hand_built_eigenproblem():
 # Cone: circular orbits (steady motion with a prescribed momentum)
 # --------------------------------------------------------------------------------------------
 
+
 def test_cone_circular_orbit_and_its_oscillation_frequency():
     m, alpha, lz = 1.3, 0.5, 2.0
     args = {"m": m, "g": G, "alpha": alpha}
     r0, omega = cone_closed_form(m, G, alpha, lz)
     # (r, φ): φ is cyclic (fixed, its rate found from p_φ = l_z).
-    eq = analysis.equilibrium(CONE, jnp.array([1.0, 0.0]), jnp.array([0.0, 1.0]), args=args,
-                              fixed=(1,), momenta={1: lz})
+    eq = analysis.equilibrium(
+        CONE, jnp.array([1.0, 0.0]), jnp.array([0.0, 1.0]), args=args, fixed=(1,), momenta={1: lz}
+    )
     np.testing.assert_allclose(eq.q[0], r0, rtol=1e-12)
     np.testing.assert_allclose(eq.qd[1], lz / (m * r0**2 * math.sin(alpha) ** 2), rtol=1e-12)
     lin = analysis.linearize(CONE, eq.q, eq.qd, args=args)
@@ -120,9 +121,14 @@ def test_cone_circular_orbit_and_its_oscillation_frequency():
     np.testing.assert_allclose(lin.frequencies, [0.0, omega], rtol=1e-11, atol=1e-7)
     assert lin.stability() == "marginal"
     # The same orbit in spherical coordinates with the constraint θ = α.
-    eq_s = analysis.equilibrium(CONE_SPHERICAL, jnp.array([1.0, 0.4, 0.0]),
-                                jnp.array([0.0, 0.0, 1.0]), args=args, fixed=(2,),
-                                momenta={2: lz})
+    eq_s = analysis.equilibrium(
+        CONE_SPHERICAL,
+        jnp.array([1.0, 0.4, 0.0]),
+        jnp.array([0.0, 0.0, 1.0]),
+        args=args,
+        fixed=(2,),
+        momenta={2: lz},
+    )
     np.testing.assert_allclose(eq_s.q[:2], [r0, alpha], rtol=1e-12)
     lin_s = analysis.linearize(CONE_SPHERICAL, eq_s.q, eq_s.qd, args=args)
     assert lin_s.reduced_state_matrix.shape == (4, 4)  # 2·3 − 2 (θ = α and θ̇ = 0)
@@ -134,8 +140,9 @@ def test_cone_frequency_matches_a_simulated_perturbation():
     m, alpha, lz, eps = 1.3, 0.5, 2.0, 1e-4
     args = {"m": m, "g": G, "alpha": alpha}
     r0, omega = cone_closed_form(m, G, alpha, lz)
-    lin = analysis.linearize(CONE, jnp.array([r0, 0.0]),
-                             jnp.array([0.0, lz / (m * r0**2 * math.sin(alpha) ** 2)]), args=args)
+    lin = analysis.linearize(
+        CONE, jnp.array([r0, 0.0]), jnp.array([0.0, lz / (m * r0**2 * math.sin(alpha) ** 2)]), args=args
+    )
     period = 2 * math.pi / float(lin.frequencies[1])
     r_start = r0 * (1 + eps)
     qd0 = jnp.array([0.0, lz / (m * r_start**2 * math.sin(alpha) ** 2)])
@@ -158,23 +165,27 @@ def test_cone_orbit_radius_jit_vmap_and_grad():
     lz, m = 2.0, 1.3
 
     def radius(params):
-        eq = analysis.equilibrium(CONE, jnp.array([1.0, 0.0]), jnp.array([0.0, 1.0]),
-                                  args=params, fixed=(1,), momenta={1: lz})
+        eq = analysis.equilibrium(
+            CONE, jnp.array([1.0, 0.0]), jnp.array([0.0, 1.0]), args=params, fixed=(1,), momenta={1: lz}
+        )
         return eq.q[0]
 
     def closed(alpha):
         return (lz**2 / (m**2 * G * jnp.sin(alpha) ** 2 * jnp.cos(alpha))) ** (1 / 3)
 
     alphas = jnp.array([0.3, 0.5, 0.9])
-    values, grads = jax.jit(jax.vmap(
-        lambda a: jax.value_and_grad(radius)({"m": m, "g": G, "alpha": a})))(alphas)
+    values, grads = jax.jit(jax.vmap(lambda a: jax.value_and_grad(radius)({"m": m, "g": G, "alpha": a})))(
+        alphas
+    )
     np.testing.assert_allclose(values, jax.vmap(closed)(alphas), rtol=1e-12)
     np.testing.assert_allclose(grads["m"], -2 / 3 * values / m, rtol=1e-10)
     np.testing.assert_allclose(grads["alpha"], jax.vmap(jax.grad(closed))(alphas), rtol=1e-10)
 
+
 # --------------------------------------------------------------------------------------------
 # Bead on the rotating parabolic wire (seed 001)
 # --------------------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("omega", [2.0, 5.0])
 def test_parabola_axis_equilibrium_on_either_side_of_the_critical_spin(omega):
@@ -198,8 +209,9 @@ def test_parabola_critical_spin_is_sqrt_2gc():
     c = 0.8
 
     def lowest(omega, _):
-        return analysis.normal_modes(PARABOLA, jnp.zeros(1),
-                                     args={"c": c, "g": G, "omega": omega}).frequencies_squared[0]
+        return analysis.normal_modes(
+            PARABOLA, jnp.zeros(1), args={"c": c, "g": G, "omega": omega}
+        ).frequencies_squared[0]
 
     sol = optx.root_find(lowest, optx.Newton(rtol=1e-13, atol=1e-13), jnp.asarray(3.0))
     np.testing.assert_allclose(sol.value, math.sqrt(2 * G * c), rtol=1e-12)
@@ -212,8 +224,14 @@ def test_parabola_steady_circle_exactly_at_omega_squared_2gc():
     c, R, t = 1.0, 0.7, 0.3
     omega = math.sqrt(2 * G * c)
     args = {"c": c, "g": G, "omega": omega}
-    eq = analysis.equilibrium(PARABOLA_CYLINDRICAL, jnp.array([R, 0.0, 0.0]),
-                              jnp.array([0.0, omega, 0.0]), t=t, args=args, fixed=(0,))
+    eq = analysis.equilibrium(
+        PARABOLA_CYLINDRICAL,
+        jnp.array([R, 0.0, 0.0]),
+        jnp.array([0.0, omega, 0.0]),
+        t=t,
+        args=args,
+        fixed=(0,),
+    )
     np.testing.assert_allclose(eq.q, [R, omega * t, c * R**2], rtol=1e-12)
     np.testing.assert_allclose(eq.multipliers, [G, 0.0], atol=1e-12)
     lin = analysis.linearize(PARABOLA_CYLINDRICAL, eq.q, eq.qd, t=t, args=args)
@@ -222,9 +240,14 @@ def test_parabola_steady_circle_exactly_at_omega_squared_2gc():
     assert lin.stability() == "marginal"
     # Off the critical spin the same radius is not steady, and the error says why.
     with pytest.raises(ValueError, match="not steady"):
-        analysis.equilibrium(PARABOLA_CYLINDRICAL, jnp.array([R, 0.0, 0.0]),
-                             jnp.array([0.0, 2.0, 0.0]), t=t, args={**args, "omega": 2.0},
-                             fixed=(0,))
+        analysis.equilibrium(
+            PARABOLA_CYLINDRICAL,
+            jnp.array([R, 0.0, 0.0]),
+            jnp.array([0.0, 2.0, 0.0]),
+            t=t,
+            args={**args, "omega": 2.0},
+            fixed=(0,),
+        )
 
 
 def test_rotating_hoop_bifurcation():
@@ -253,8 +276,7 @@ def test_cart_pole_state_space_matrices():
     a[:2, 2:] = np.eye(2)
     a[2:, :2] = np.linalg.solve(mass, np.diag([0.0, 0.5 * m * G * l]))
     b = np.concatenate([np.zeros(2), np.linalg.solve(mass, [1.0, 0.0])])[:, None]
-    lin = analysis.linearize(systems.cart_pole(), jnp.zeros(2), args=args,
-                             inputs=lambda p: p["force"])
+    lin = analysis.linearize(systems.cart_pole(), jnp.zeros(2), args=args, inputs=lambda p: p["force"])
     np.testing.assert_allclose(lin.state_matrix, a, atol=1e-12)
     np.testing.assert_allclose(lin.input_matrix, b, atol=1e-12)
     assert lin.stability() == "unstable"
@@ -265,18 +287,28 @@ def test_cart_pole_state_space_matrices():
 # Conservation laws
 # --------------------------------------------------------------------------------------------
 
+
 def _simulate(system, q0, qd0, args):
     # The options of tests/test_systems.py (exact initial states, no projection over 1 s at
     # rtol 1e-10), so that both files share one compiled simulation per model.
-    return jl.simulate(system, jnp.asarray(q0), jnp.asarray(qd0), jnp.linspace(0.0, 1.0, 5),
-                       args=args, check_initial_state=False, projection=None)
+    return jl.simulate(
+        system,
+        jnp.asarray(q0),
+        jnp.asarray(qd0),
+        jnp.linspace(0.0, 1.0, 5),
+        args=args,
+        check_initial_state=False,
+        projection=None,
+    )
 
 
 def _spherical_pendulum_state(th, ph, thd, phd, l=1.0):
     # Position l(sinθ cosφ, sinθ sinφ, −cosθ) and its velocity.
     x = l * np.array([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), -np.cos(th)])
-    v = l * (thd * np.array([np.cos(th) * np.cos(ph), np.cos(th) * np.sin(ph), np.sin(th)])
-             + phd * np.sin(th) * np.array([-np.sin(ph), np.cos(ph), 0.0]))
+    v = l * (
+        thd * np.array([np.cos(th) * np.cos(ph), np.cos(th) * np.sin(ph), np.sin(th)])
+        + phd * np.sin(th) * np.array([-np.sin(ph), np.cos(ph), 0.0])
+    )
     return jnp.asarray(x), jnp.asarray(v)
 
 
@@ -285,15 +317,19 @@ def test_noether_angular_momentum_of_spherical_pendulum():
     args = {"m": m, "l": 1.0}
     q, qd = _spherical_pendulum_state(0.8, 0.3, 0.5, 1.4)
     lz = analysis.rotation_generator([0.0, 0.0, 1.0])
-    np.testing.assert_allclose(analysis.noether_charge(SPHERICAL_PENDULUM, lz, q, qd, args=args),
-                               m * (q[0] * qd[1] - q[1] * qd[0]), rtol=1e-14)
+    np.testing.assert_allclose(
+        analysis.noether_charge(SPHERICAL_PENDULUM, lz, q, qd, args=args),
+        m * (q[0] * qd[1] - q[1] * qd[0]),
+        rtol=1e-14,
+    )
     # A symmetry: the charge's rate (δL plus the constraint force's torque) vanishes.
     assert abs(analysis.noether_rate(SPHERICAL_PENDULUM, lz, q, qd, args=args)) < 1e-12
     # Rotation about x is not: dL_x/dt is gravity's torque (r × F)_x = y F_z = −m g y (the rod's
     # force is radial and has no torque).
     lx = analysis.rotation_generator([1.0, 0.0, 0.0])
-    np.testing.assert_allclose(analysis.noether_rate(SPHERICAL_PENDULUM, lx, q, qd, args=args),
-                               -m * G * q[1], rtol=1e-12)
+    np.testing.assert_allclose(
+        analysis.noether_rate(SPHERICAL_PENDULUM, lx, q, qd, args=args), -m * G * q[1], rtol=1e-12
+    )
 
     traj = _simulate(SPHERICAL_PENDULUM, q, qd, args)
     report = analysis.conservation_report(traj, {"L_z": lz}, ignorable=())
@@ -311,11 +347,12 @@ def test_ignorable_coordinate_of_spherical_pendulum_in_angles():
     assert analysis.ignorable_coordinates(SPHERICAL_PENDULUM, *cartesian_state) == ()
     # Momenta and the energy function at a state, m = l = 1, θ from the downward vertical:
     # p = (θ̇, sin²θ φ̇), h = ½ (θ̇² + sin²θ φ̇²) − g cos θ.
-    np.testing.assert_allclose(analysis.momenta(system, q0, qd0),
-                               [0.5, math.sin(0.8) ** 2 * 1.4], rtol=1e-14)
-    np.testing.assert_allclose(analysis.energy(system, q0, qd0),
-                               0.5 * (0.25 + math.sin(0.8) ** 2 * 1.4**2) - G * math.cos(0.8),
-                               rtol=1e-14)
+    np.testing.assert_allclose(analysis.momenta(system, q0, qd0), [0.5, math.sin(0.8) ** 2 * 1.4], rtol=1e-14)
+    np.testing.assert_allclose(
+        analysis.energy(system, q0, qd0),
+        0.5 * (0.25 + math.sin(0.8) ** 2 * 1.4**2) - G * math.cos(0.8),
+        rtol=1e-14,
+    )
     traj = _simulate(system, q0, qd0, {"m": 1.0, "l": 1.0})
     report = analysis.conservation_report(traj)
     # p_φ = m l² sin²θ φ̇ (m = l = 1 by default).
@@ -331,12 +368,10 @@ def test_noether_linear_momentum_of_free_chain():
     q0 = jnp.array([0.0, 0.0, 1.0, 0.0, 1.0, 1.0])
     qd0 = jnp.array([0.3, 0.1, 0.3, -0.5, 1.0, -0.5])  # rigid-compatible: links keep length
     px, py = analysis.translation_generator([1.0, 0.0]), analysis.translation_generator([0.0, 1.0])
-    np.testing.assert_allclose(analysis.noether_charge(chain, px, q0, qd0, args=args), 1.6,
-                               rtol=1e-14)
+    np.testing.assert_allclose(analysis.noether_charge(chain, px, q0, qd0, args=args), 1.6, rtol=1e-14)
     assert abs(analysis.noether_rate(chain, px, q0, qd0, args=args)) < 1e-12
     # Gravity breaks the vertical translation: dP_y/dt = −Σ m g = −6.
-    np.testing.assert_allclose(analysis.noether_rate(chain, py, q0, qd0, args=args), -6.0,
-                               rtol=1e-12)
+    np.testing.assert_allclose(analysis.noether_rate(chain, py, q0, qd0, args=args), -6.0, rtol=1e-12)
     traj = _simulate(chain, q0, qd0, args)
     report = analysis.conservation_report(traj, {"P_x": px, "P_y": py}, ignorable=())
     assert report["P_x"].max_deviation < 1e-8
@@ -347,6 +382,7 @@ def test_noether_linear_momentum_of_free_chain():
 # Bad input
 # --------------------------------------------------------------------------------------------
 
+
 def test_bad_input_errors():
     q, qd = _spherical_pendulum_state(0.8, 0.3, 0.5, 1.4)
     with pytest.raises(ValueError, match="must return a vector like q"):
@@ -354,8 +390,9 @@ def test_bad_input_errors():
     with pytest.raises(ValueError, match="3-vector"):
         analysis.rotation_generator([0.0, 1.0])
     with pytest.raises(ValueError, match="not a layout"):
-        analysis.noether_charge(SPHERICAL_PENDULUM, analysis.translation_generator([1.0, 0.0]),
-                                jnp.ones(3), jnp.ones(3))
+        analysis.noether_charge(
+            SPHERICAL_PENDULUM, analysis.translation_generator([1.0, 0.0]), jnp.ones(3), jnp.ones(3)
+        )
     with pytest.raises(ValueError, match="out of range"):
         analysis.equilibrium(CONE, jnp.array([1.0, 0.0]), fixed=(5,))
     with pytest.raises(ValueError, match="not an equilibrium"):
@@ -363,8 +400,9 @@ def test_bad_input_errors():
     with pytest.raises(ValueError, match="velocity"):
         analysis.normal_modes(systems.knife_edge(), jnp.zeros(3))
     with pytest.raises(ValueError, match="scalar or a 1-D array"):
-        analysis.linearize(systems.cart_pole(), jnp.zeros(2), args={"gain": jnp.ones((2, 2))},
-                           inputs=lambda a: a["gain"])
+        analysis.linearize(
+            systems.cart_pole(), jnp.zeros(2), args={"gain": jnp.ones((2, 2))}, inputs=lambda a: a["gain"]
+        )
 
 
 def test_root_find_failure_is_reported():
@@ -373,10 +411,10 @@ def test_root_find_failure_is_reported():
     with pytest.raises(ValueError, match="did not converge"):
         analysis.equilibrium(kepler, jnp.array([1.0, 0.0]), fixed=(1,), max_steps=16)
     with pytest.raises(Exception, match="did not converge"):
-        jax.jit(lambda r: analysis.equilibrium(kepler, jnp.stack([r, 0.0]), fixed=(1,),
-                                               max_steps=16).q)(1.0).block_until_ready()
-    eq = analysis.equilibrium(kepler, jnp.array([1.0, 0.0]), fixed=(1,), max_steps=16,
-                              throw=False)
+        jax.jit(lambda r: analysis.equilibrium(kepler, jnp.stack([r, 0.0]), fixed=(1,), max_steps=16).q)(
+            1.0
+        ).block_until_ready()
+    eq = analysis.equilibrium(kepler, jnp.array([1.0, 0.0]), fixed=(1,), max_steps=16, throw=False)
     assert eq.result != optx.RESULTS.successful
 
 
@@ -388,6 +426,7 @@ def test_nonholonomic_tangent_space():
     assert lin.basis.shape == (6, 5)
     # The basis is tangent: the constraint's linearization −δẋ sinθ + δẏ cosθ − (ẋ cosθ + ẏ sinθ) δθ
     # vanishes on it.
-    row = np.array([0.0, 0.0, -(qd[0] * math.cos(0.4) + qd[1] * math.sin(0.4)),
-                    -math.sin(0.4), math.cos(0.4), 0.0])
+    row = np.array(
+        [0.0, 0.0, -(qd[0] * math.cos(0.4) + qd[1] * math.sin(0.4)), -math.sin(0.4), math.cos(0.4), 0.0]
+    )
     np.testing.assert_allclose(row @ np.asarray(lin.basis), 0.0, atol=1e-14)

@@ -66,13 +66,24 @@ def test_batch_of_states_and_parameters_equals_the_loop_and_does_not_recompile()
     # NumPy input compiles a tiny host-to-device conversion once, so each input kind is seen once
     # before counting.)
     def call_batch(scale):
-        out = simulate_batch(PENDULUM, np.asarray(q0s) * scale, qd0s + scale, TS,
-                             args={"g": gs * scale, "l": 0.7 * scale}, args_axes={"g": 0, "l": None})
+        out = simulate_batch(
+            PENDULUM,
+            np.asarray(q0s) * scale,
+            qd0s + scale,
+            TS,
+            args={"g": gs * scale, "l": 0.7 * scale},
+            args_axes={"g": 0, "l": None},
+        )
         return jax.block_until_ready(out)
 
     def call_single(scale):
-        out = jl.simulate(PENDULUM, [0.4 * scale], np.array([0.2]), TS,
-                          args={"g": np.float64(5.0 * scale), "l": 2.0 * scale})
+        out = jl.simulate(
+            PENDULUM,
+            [0.4 * scale],
+            np.array([0.2]),
+            TS,
+            args={"g": np.float64(5.0 * scale), "l": 2.0 * scale},
+        )
         return jax.block_until_ready(out)
 
     call_batch(1.0), call_single(1.0)
@@ -83,15 +94,13 @@ def test_batch_of_states_and_parameters_equals_the_loop_and_does_not_recompile()
             call_single(scale)
     assert len(TRACES) == traces
     assert compiles.count == 0
-    expected = jl.simulate(PENDULUM, q0s[2] * 0.8, qd0s[2] + 0.8, TS,
-                           args={"g": gs[2] * 0.8, "l": 0.7 * 0.8})
+    expected = jl.simulate(PENDULUM, q0s[2] * 0.8, qd0s[2] + 0.8, TS, args={"g": gs[2] * 0.8, "l": 0.7 * 0.8})
     np.testing.assert_allclose(again.q[2], expected.q, rtol=0, atol=1e-12)
 
 
 def test_shared_state_batched_parameters_and_all_leaves_batched():
     args = {"g": jnp.array([4.0, 9.81]), "l": jnp.array([1.0, 2.0])}
-    all_batched = simulate_batch(PENDULUM, jnp.array([1.0]), jnp.zeros(1), TS, args=args,
-                                 args_axes=0)
+    all_batched = simulate_batch(PENDULUM, jnp.array([1.0]), jnp.zeros(1), TS, args=args, args_axes=0)
     assert all_batched.q.shape == (2, 21, 1)
     single = jl.simulate(PENDULUM, [1.0], [0.0], TS, args={"g": 9.81, "l": 2.0})
     np.testing.assert_allclose(all_batched.q[1], single.q, rtol=0, atol=1e-12)
@@ -100,20 +109,17 @@ def test_shared_state_batched_parameters_and_all_leaves_batched():
 def test_bad_batches_are_rejected_with_a_message():
     args = {"g": jnp.array([4.0, 9.81, 1.0]), "l": 1.0}
     with pytest.raises(ValueError, match="Inconsistent batch sizes"):
-        simulate_batch(PENDULUM, jnp.ones((2, 1)), jnp.zeros(1), TS, args=args,
-                       args_axes={"g": 0, "l": None})
+        simulate_batch(PENDULUM, jnp.ones((2, 1)), jnp.zeros(1), TS, args=args, args_axes={"g": 0, "l": None})
     with pytest.raises(ValueError, match="Nothing to batch"):
         simulate_batch(PENDULUM, jnp.ones(1), jnp.zeros(1), TS, args={"g": 9.81, "l": 1.0})
     with pytest.raises(ValueError, match="is a scalar"):
-        simulate_batch(PENDULUM, jnp.ones((2, 1)), jnp.zeros(1), TS, args={"g": 9.81, "l": 1.0},
-                       args_axes=0)
+        simulate_batch(PENDULUM, jnp.ones((2, 1)), jnp.zeros(1), TS, args={"g": 9.81, "l": 1.0}, args_axes=0)
     with pytest.raises(ValueError, match="0 .* or None"):
         simulate_batch(PENDULUM, jnp.ones((2, 1)), jnp.zeros(1), TS, args=args, args_axes=1)
     with pytest.raises(ValueError, match="shape \\(B, n\\)"):
         simulate_batch(PENDULUM, jnp.ones((2, 1, 1)), jnp.zeros(1), TS, args=args)
     with pytest.raises(TypeError, match="sharding"):
-        simulate_batch(PENDULUM, jnp.ones((2, 1)), jnp.zeros(1), TS,
-                       args={"g": 9.81, "l": 1.0}, sharding=4)
+        simulate_batch(PENDULUM, jnp.ones((2, 1)), jnp.zeros(1), TS, args={"g": 9.81, "l": 1.0}, sharding=4)
 
 
 _SHARDED_SCRIPT = textwrap.dedent(
@@ -174,8 +180,13 @@ def test_sharded_batch_on_four_host_devices_equals_unsharded():
     # The timeout only guards against a hang: the script takes about 30 s on this 2-core CPU, and
     # a machine shared with other jobs (or the whole suite under xdist) can stretch that several
     # times, so no wall-clock figure that load can reach is asserted.
-    result = subprocess.run([sys.executable, "-c", _SHARDED_SCRIPT], env=env, capture_output=True,
-                            text=True, timeout=HANG_GUARD_SECONDS)
+    result = subprocess.run(
+        [sys.executable, "-c", _SHARDED_SCRIPT],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=HANG_GUARD_SECONDS,
+    )
     assert result.returncode == 0 and "SHARDED-OK" in result.stdout, result.stdout + result.stderr
 
 
@@ -199,9 +210,11 @@ def test_memory_grows_linearly_in_the_batch(kind):
         system, n = PENDULUM, 1
         q0, qd0, kwargs = jnp.array([0.5]), jnp.array([0.0]), {"args": {"g": 9.81, "l": 1.0}}
     else:  # a particle released from a sphere: constrained, with a release event
-        system = jl.System(lambda q, qd: 0.5 * jnp.sum(qd**2) - 9.81 * q[1],
-                           lambda q: jnp.array([jnp.sqrt(q[0] ** 2 + q[1] ** 2) - 1.0]),
-                           unilateral=0)
+        system = jl.System(
+            lambda q, qd: 0.5 * jnp.sum(qd**2) - 9.81 * q[1],
+            lambda q: jnp.array([jnp.sqrt(q[0] ** 2 + q[1] ** 2) - 1.0]),
+            unilateral=0,
+        )
         n, kwargs = 2, {}
         q0, qd0 = jnp.array([jnp.sin(0.2), jnp.cos(0.2)]), jnp.zeros(2)
 
@@ -209,11 +222,14 @@ def test_memory_grows_linearly_in_the_batch(kind):
         states = jnp.tile(q0, (batch, 1)) * (1.0 + 0.01 * jnp.arange(batch))[:, None]
         run = jax.jit(lambda s: simulate_batch(system, s, qd0, TS, **kwargs).q)
         stats = run.lower(states).compile().memory_analysis()
-        return {"temp": stats.temp_size_in_bytes, "arguments": stats.argument_size_in_bytes,
-                "outputs": stats.output_size_in_bytes}
+        return {
+            "temp": stats.temp_size_in_bytes,
+            "arguments": stats.argument_size_in_bytes,
+            "outputs": stats.output_size_in_bytes,
+        }
 
     saved = TS.shape[0] * n * 8  # one member's saved q, float64
-    state = n * 8                # one member's initial positions, float64
+    state = n * 8  # one member's initial positions, float64
     sizes = (16, 32, 64) if jax.default_backend() == "cpu" else (16, 32, 64, 128)
     stats = {batch: memory(batch) for batch in sizes}
     total = {batch: sum(s.values()) for batch, s in stats.items()}
@@ -229,8 +245,7 @@ def test_memory_grows_linearly_in_the_batch(kind):
         # per member) buffers a batch needs, a few hundred bytes in all, not on B. Measured:
         # 892 B == 892 B unconstrained; 2652 B vs 2646 B with events (second difference 192 B).
         second_difference = (total[64] - total[32]) - 2 * (total[32] - total[16])
-        assert abs(second_difference) <= 0.01 * (total[64] - total[32]), (per_member_low,
-                                                                           per_member_high)
+        assert abs(second_difference) <= 0.01 * (total[64] - total[32]), (per_member_low, per_member_high)
         assert per_member_high < 20 * saved  # measured: 892 B (5.3×) and 2646 B (7.9×)
     else:
         for batch in sizes[1:]:
@@ -243,22 +258,27 @@ def test_batch_checks_on_the_host_name_the_member():
     """Concrete batches are checked on the host (the program returns the diagnostics): a member
     off the constraint manifold is named with simulate's message, as are bad save times; under
     an enclosing jit the checks are compiled in and raise too."""
-    system = jl.System(lambda q, qd, args: 0.5 * (qd @ qd) - args["g"] * q[1],
-                       holonomic=lambda q, args: jnp.array([q @ q - 1.0]))
+    system = jl.System(
+        lambda q, qd, args: 0.5 * (qd @ qd) - args["g"] * q[1],
+        holonomic=lambda q, args: jnp.array([q @ q - 1.0]),
+    )
     q0s = jnp.array([[0.0, -1.0], [0.6, -0.8], [0.6, -0.9], [1.0, 0.0]])
     ts = jnp.linspace(0.0, 0.5, 6)
     args = {"g": 9.81}
-    with pytest.raises(ValueError, match=r"1 of 4 batch members failed \(first: member \[2\]\)"
-                                         r".*(constraint|manifold|violat)"):
+    with pytest.raises(
+        ValueError,
+        match=r"1 of 4 batch members failed \(first: member \[2\]\)"
+        r".*(constraint|manifold|violat)",
+    ):
         jl.simulate_batch(system, q0s, jnp.zeros(2), ts, args=args)
     with pytest.raises(ValueError, match="strictly increasing"):
         jl.simulate_batch(system, q0s[:2], jnp.zeros(2), ts[::-1], args=args)
     good = jl.simulate_batch(system, q0s[jnp.array([0, 1, 3])], jnp.zeros(2), ts, args=args)
     np.testing.assert_allclose(jnp.sum(good.q**2, axis=-1), 1.0, atol=1e-9)
     with pytest.raises(Exception, match=r"member \[2\]"):
-        jax.block_until_ready(jax.jit(
-            lambda q: jl.simulate_batch(system, q, jnp.zeros(2), ts, args=args).q)(q0s))
+        jax.block_until_ready(
+            jax.jit(lambda q: jl.simulate_batch(system, q, jnp.zeros(2), ts, args=args).q)(q0s)
+        )
     # check_initial_state=False is respected: no diagnostics, the member just runs.
-    traj = jl.simulate_batch(system, q0s, jnp.zeros(2), ts, args=args,
-                             check_initial_state=False, throw=False)
+    traj = jl.simulate_batch(system, q0s, jnp.zeros(2), ts, args=args, check_initial_state=False, throw=False)
     assert traj.q.shape == (4, 6, 2)

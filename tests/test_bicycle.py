@@ -29,8 +29,12 @@ BENCH_K2 = np.array([[0.0, 76.59734589573222], [0.0, 2.65431523794604]])
 
 def _benchmark_eigenvalues(v, g=9.81):
     inverse = np.linalg.inv(BENCH_M)
-    a = np.block([[np.zeros((2, 2)), np.eye(2)],
-                  [-inverse @ (g * BENCH_K0 + v * v * BENCH_K2), -inverse @ (v * BENCH_C1)]])
+    a = np.block(
+        [
+            [np.zeros((2, 2)), np.eye(2)],
+            [-inverse @ (g * BENCH_K0 + v * v * BENCH_K2), -inverse @ (v * BENCH_C1)],
+        ]
+    )
     values = np.linalg.eigvals(a)
     return values[np.argsort(values.real)]
 
@@ -42,8 +46,11 @@ def bicycle_spectrum():
     def at_speed(v):
         # q̈ and λ at the upright state compiled with the linearization (shared subgraph)
         q, qd = systems.bicycle_upright_state(v)
-        return (*systems.bicycle_eigenvalues(v, return_residual=True), system.accelerations(q, qd),
-                system.multipliers(q, qd))
+        return (
+            *systems.bicycle_eigenvalues(v, return_residual=True),
+            system.accelerations(q, qd),
+            system.multipliers(q, qd),
+        )
 
     return jax.jit(jax.vmap(at_speed))
 
@@ -63,7 +70,7 @@ def _refine(spectrum, low, high, indicator, iterations=16):
 def test_whipple_bicycle_matches_benchmark(bicycle_spectrum):
     speeds = np.array([1.0, 3.0, 4.9, 5.0, 6.0, 8.0])
     values, residual, accelerations, normal = bicycle_spectrum(jnp.asarray(speeds))
-    assert np.max(np.asarray(residual)) < 1e-9              # lean–steer motion is a quotient
+    assert np.max(np.asarray(residual)) < 1e-9  # lean–steer motion is a quotient
     # upright straight-ahead rolling is a steady motion (q̈ = 0), so linearizing about it is
     # meaningful; the front normal force carries part of the weight
     assert np.max(np.abs(accelerations)) < 1e-12
@@ -74,15 +81,28 @@ def test_whipple_bicycle_matches_benchmark(bicycle_spectrum):
         assert np.allclose(np.sort_complex(ours), np.sort_complex(reference), rtol=1e-9, atol=1e-9)
     # the paper's table at v = 5 m/s (weave, capsize, castering)
     at5 = np.sort_complex(np.asarray(values)[3])
-    assert np.allclose(at5, np.sort_complex(np.array([
-        -14.07838969279822, -0.77534188219585 - 4.46486771378823j,
-        -0.77534188219585 + 4.46486771378823j, -0.32286642900409])), atol=1e-9)
+    assert np.allclose(
+        at5,
+        np.sort_complex(
+            np.array(
+                [
+                    -14.07838969279822,
+                    -0.77534188219585 - 4.46486771378823j,
+                    -0.77534188219585 + 4.46486771378823j,
+                    -0.32286642900409,
+                ]
+            )
+        ),
+        atol=1e-9,
+    )
     # weave speed (the complex pair crosses the imaginary axis) and capsize speed (the real
     # capsize eigenvalue crosses zero): published v_w = 4.29238253634111, v_c = 6.02426201538837
-    weave = _refine(bicycle_spectrum, 4.0, 5.0,
-                    lambda e: np.max(np.where(np.abs(e.imag) > 1e-9, e.real, -np.inf)))
-    capsize = _refine(bicycle_spectrum, 5.5, 6.5,
-                      lambda e: np.max(np.where(np.abs(e.imag) <= 1e-9, e.real, -np.inf)))
+    weave = _refine(
+        bicycle_spectrum, 4.0, 5.0, lambda e: np.max(np.where(np.abs(e.imag) > 1e-9, e.real, -np.inf))
+    )
+    capsize = _refine(
+        bicycle_spectrum, 5.5, 6.5, lambda e: np.max(np.where(np.abs(e.imag) <= 1e-9, e.real, -np.inf))
+    )
     assert abs(weave - 4.29238253634111) < 1e-8
     assert abs(capsize - 6.02426201538837) < 1e-8
 

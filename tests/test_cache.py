@@ -37,8 +37,7 @@ def test_import_changes_no_jax_setting():
         "before = snap(); import jaxlag; after = snap()\n"
         "print(sorted(k for k in before if before[k] != after.get(k)))\n"
     )
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                         timeout=300)
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "[]"
 
@@ -148,8 +147,7 @@ def test_fifo_and_device_links_are_refused_without_reading(tmp_path):
     fifo = directory / "jit_solve-fifo-cache"
     os.mkfifo(fifo, 0o600)
     result = {}
-    worker = threading.Thread(target=lambda: result.update(
-        error=_refusal(directory)))
+    worker = threading.Thread(target=lambda: result.update(error=_refusal(directory)))
     worker.start()
     worker.join(timeout=30)
     assert not worker.is_alive(), "the check opened the FIFO"
@@ -209,8 +207,9 @@ def test_enable_compilation_cache_end_to_end(tmp_path):
     env["XDG_CACHE_HOME"] = str(tmp_path)
 
     def run():
-        out = subprocess.run([sys.executable, "-c", _SCRIPT], env=env, capture_output=True,
-                             text=True, timeout=600)
+        out = subprocess.run(
+            [sys.executable, "-c", _SCRIPT], env=env, capture_output=True, text=True, timeout=600
+        )
         assert out.returncode == 0, out.stderr[-2000:]
         directory, hits, value = out.stdout.split()
         return directory, int(hits), float(value)
@@ -223,8 +222,9 @@ def test_enable_compilation_cache_end_to_end(tmp_path):
     assert second_hits > first_hits  # the second process read what the first wrote
     assert second_value == value
     os.chmod(directory, 0o770)
-    env_unsafe = subprocess.run([sys.executable, "-c", _SCRIPT], env=env, capture_output=True,
-                                text=True, timeout=600)
+    env_unsafe = subprocess.run(
+        [sys.executable, "-c", _SCRIPT], env=env, capture_output=True, text=True, timeout=600
+    )
     assert env_unsafe.returncode != 0
     assert "UnsafeCacheDirectory" in env_unsafe.stderr
     assert "writable by group or others" in env_unsafe.stderr
@@ -235,5 +235,7 @@ def test_enable_sets_only_the_cache_settings(tmp_path, monkeypatch):
     updates = []
     monkeypatch.setattr(jax.config, "update", lambda name, value: updates.append((name, value)))
     directory = jl.enable_compilation_cache(tmp_path / "jax", min_compile_time_secs=0.5)
-    assert updates == [("jax_compilation_cache_dir", str(directory)),
-                       ("jax_persistent_cache_min_compile_time_secs", 0.5)]
+    assert updates == [
+        ("jax_compilation_cache_dir", str(directory)),
+        ("jax_persistent_cache_min_compile_time_secs", 0.5),
+    ]

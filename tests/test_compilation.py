@@ -48,8 +48,9 @@ def _sphere_lagrangian(q, qd, args):
 
 
 SPHERE = jl.System(_sphere_lagrangian, holonomic=lambda q, args: jnp.array([q[0] - args["R"]]))
-PENDULUM = jl.System(lambda q, qd, args: 0.5 * args["l"] ** 2 * qd[0] ** 2
-                     + args["g"] * args["l"] * jnp.cos(q[0]))
+PENDULUM = jl.System(
+    lambda q, qd, args: 0.5 * args["l"] ** 2 * qd[0] ** 2 + args["g"] * args["l"] * jnp.cos(q[0])
+)
 
 
 def test_compiler_options(monkeypatch):
@@ -85,12 +86,17 @@ def test_user_jit_vmap_and_grad_with_and_without_options():
 def test_new_values_do_not_recompile():
     """A second simulate and a second jax.grad with new values of q0, args and ts (same shapes)
     compile nothing, including the forward-sensitivity program of the default adjoint."""
+
     def run(theta, g, t_end):
         ts = jnp.linspace(0.0, t_end, 11)
-        traj = jl.simulate(SPHERE, jnp.array([2.0, theta]), jnp.zeros(2), ts,
-                           args={"m": 1.0, "g": g, "R": 2.0})
-        loss = jax.grad(lambda a: jnp.sum(jl.simulate(
-            SPHERE, jnp.array([2.0, theta]), jnp.zeros(2), ts, args=a).q[:, 1] ** 2))
+        traj = jl.simulate(
+            SPHERE, jnp.array([2.0, theta]), jnp.zeros(2), ts, args={"m": 1.0, "g": g, "R": 2.0}
+        )
+        loss = jax.grad(
+            lambda a: jnp.sum(
+                jl.simulate(SPHERE, jnp.array([2.0, theta]), jnp.zeros(2), ts, args=a).q[:, 1] ** 2
+            )
+        )
         return traj.q, loss({"m": 1.0, "g": g, "R": 2.0})
 
     jax.block_until_ready(run(0.1, 9.81, 1.0))
@@ -111,8 +117,13 @@ def test_fit_twice_compiles_once_and_stops_at_the_noise_floor():
         traj = jl.simulate(PENDULUM, jnp.array([0.5]), jnp.zeros(1), ts, args=truth)
         data = jax.vmap(lambda q, qd: bob(q, qd, truth))(traj.q, traj.qd)
         data = data + 1e-3 * np.random.default_rng(seed).standard_normal(data.shape)
-        return jl.fit(PENDULUM, guess, jl.Experiment(ts, data, jnp.array([0.5]), jnp.zeros(1)),
-                      observe=bob, transforms={"g": jl.Positive(), "l": jl.Positive()})
+        return jl.fit(
+            PENDULUM,
+            guess,
+            jl.Experiment(ts, data, jnp.array([0.5]), jnp.zeros(1)),
+            observe=bob,
+            transforms={"g": jl.Positive(), "l": jl.Positive()},
+        )
 
     first = fit({"g": 9.81, "l": 0.8}, {"g": 11.0, "l": 0.6}, 0)
     with compilations() as count:
@@ -128,10 +139,19 @@ def test_fit_twice_compiles_once_and_stops_at_the_noise_floor():
 def test_failure_inside_grad_is_raised(mode):
     """The forward-sensitivity rule raises run-time failures with the numbers (host-side when
     eager, from the program under jit)."""
+
     def loss(g):
-        return jnp.sum(jl.simulate(PENDULUM, jnp.array([0.5]), jnp.zeros(1),
-                                   jnp.linspace(0.0, 50.0, 3), args={"g": g, "l": 1.0},
-                                   max_steps=16).q ** 2)
+        return jnp.sum(
+            jl.simulate(
+                PENDULUM,
+                jnp.array([0.5]),
+                jnp.zeros(1),
+                jnp.linspace(0.0, 50.0, 3),
+                args={"g": g, "l": 1.0},
+                max_steps=16,
+            ).q
+            ** 2
+        )
 
     grad = jax.grad(loss) if mode == "eager" else jax.jit(jax.grad(loss))
     with pytest.raises(Exception, match="max_steps = 16"):
@@ -152,6 +172,7 @@ def test_options_unknown_to_this_xla_fall_back_to_its_defaults(monkeypatch):
 def test_a_check_inside_the_equations_of_motion_still_raises(helper):
     """An ``eqx.error_if`` in a user's Lagrangian raises, also inside a user's ``jax.jit``
     helper, whose trace JAX caches."""
+
     def in_range(q):
         return eqx.error_if(q, q[0] > 0.4, "the angle left the model's range")
 
@@ -163,21 +184,25 @@ def test_a_check_inside_the_equations_of_motion_still_raises(helper):
 
     system = jl.System(lagrangian)
     with pytest.raises(Exception, match="the angle left the model's range"):
-        jax.block_until_ready(jl.simulate(system, jnp.array([0.3]), jnp.array([1.0]),
-                                          jnp.linspace(0.0, 1.0, 5), args={"g": 9.81}).q)
+        jax.block_until_ready(
+            jl.simulate(
+                system, jnp.array([0.3]), jnp.array([1.0]), jnp.linspace(0.0, 1.0, 5), args={"g": 9.81}
+            ).q
+        )
 
 
 def test_simulations_traced_in_parallel_threads():
     """Simulations traced from several threads at once: every result equals the one traced
     alone."""
-    system = jl.System(lambda q, qd, args: 0.5 * (qd @ qd) - args["g"] * q[1],
-                       holonomic=lambda q, args: jnp.array([q @ q - 1.0]))
+    system = jl.System(
+        lambda q, qd, args: 0.5 * (qd @ qd) - args["g"] * q[1],
+        holonomic=lambda q, args: jnp.array([q @ q - 1.0]),
+    )
     q0 = jnp.array([jnp.sin(0.4), -jnp.cos(0.4)])
     sizes = (4, 5, 6, 7)  # one new trace per thread
 
     def run(size):
-        return jl.simulate(system, q0, jnp.zeros(2), jnp.linspace(0.0, 0.3, size),
-                           args={"g": 9.81}).q[-1]
+        return jl.simulate(system, q0, jnp.zeros(2), jnp.linspace(0.0, 0.3, size), args={"g": 9.81}).q[-1]
 
     results = {}
     threads = [threading.Thread(target=lambda s=s: results.__setitem__(s, run(s))) for s in sizes]
@@ -215,14 +240,28 @@ def test_solver_step_traced_once_per_solve(constrained):
     system = jl.System(lambda q, qd, args: 0.5 * jnp.sum(qd**2) - args["g"] * q[1], holonomic)
     args = {"g": 9.81, "R": 1.0}
     solver = _CountingSolver()
-    traj = jl.simulate(system, jnp.array([1.0, 0.0]), jnp.array([0.0, 0.5]),
-                       jnp.linspace(0.0, 1.0, 5), args=args, solver=solver)
+    traj = jl.simulate(
+        system,
+        jnp.array([1.0, 0.0]),
+        jnp.array([0.0, 0.5]),
+        jnp.linspace(0.0, 1.0, 5),
+        args=args,
+        solver=solver,
+    )
     assert len(solver.calls) == 1
     # The same physics as without the wrapper: y = 0.5 t − g t²/2.
     np.testing.assert_allclose(traj.q[:, 1], 0.5 * traj.t - 0.5 * 9.81 * traj.t**2, atol=1e-10)
     solver.calls.clear()
-    jax.grad(lambda a: jl.simulate(system, jnp.array([1.0, 0.0]), jnp.array([0.0, 0.5]),
-                                   jnp.linspace(0.0, 1.0, 5), args=a, solver=solver).q[-1, 1])(args)
+    jax.grad(
+        lambda a: jl.simulate(
+            system,
+            jnp.array([1.0, 0.0]),
+            jnp.array([0.0, 0.5]),
+            jnp.linspace(0.0, 1.0, 5),
+            args=a,
+            solver=solver,
+        ).q[-1, 1]
+    )(args)
     # A wrapped solver takes the general path (vmap of jvp of the traced solve), whose step is
     # the one simulate traced above (same solver, same shapes): served from the cache.
     assert len(solver.calls) <= 1

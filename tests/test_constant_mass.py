@@ -46,6 +46,7 @@ def chain(q):
 
 def general_path(lagrangian):
     """The same Lagrangian with a structural (numerically zero) dependence of M on q."""
+
     def wrapped(q, qd, *rest, **kw):
         return lagrangian(q, qd, *rest, **kw) + 0.0 * q[0] * jnp.sum(qd**2)
 
@@ -150,8 +151,10 @@ def test_masses_in_args_inverted_once_and_differentiable():
     # Gravity and inertia scale together here, so only the constraint coupling makes the masses
     # matter; finite differences confirm the gradient is not the trivially zero one.
     h = 1e-5
-    fd = [(loss(fast_system, args["m"].at[i].add(h)) - loss(fast_system, args["m"].at[i].add(-h)))
-          / (2 * h) for i in range(3)]
+    fd = [
+        (loss(fast_system, args["m"].at[i].add(h)) - loss(fast_system, args["m"].at[i].add(-h))) / (2 * h)
+        for i in range(3)
+    ]
     np.testing.assert_allclose(grad_fast, fd, rtol=1e-5, atol=1e-8)
     assert float(jnp.max(jnp.abs(grad_fast))) > 1e-3
 
@@ -205,8 +208,14 @@ def test_singular_constant_mass_is_reported_without_the_initial_check():
 def test_constant_step_solver_and_forward_mode():
     q0, qd0 = chain_state(3)
     system = jl.System(particles_with_masses, chain)
-    kwargs = dict(t0=0.0, t1=1.0, dt0=0.01, saveat=diffrax.SaveAt(t1=True),
-                  stepsize_controller=diffrax.ConstantStepSize(), adjoint=diffrax.ForwardMode())
+    kwargs = dict(
+        t0=0.0,
+        t1=1.0,
+        dt0=0.01,
+        saveat=diffrax.SaveAt(t1=True),
+        stepsize_controller=diffrax.ConstantStepSize(),
+        adjoint=diffrax.ForwardMode(),
+    )
 
     def final(m):
         return jl.simulate(system, q0, qd0, args={"m": m}, **kwargs).q[-1]
@@ -229,8 +238,13 @@ def test_args_with_keys_and_integers():
     ts = jnp.linspace(0.0, 1.0, 3)
     traj = jl.simulate(jl.System(lagrangian), jnp.array([0.0, 1.0]), jnp.zeros(2), ts, args=args)
     np.testing.assert_allclose(traj.q[:, 1], 1.0 - 0.5 * 9.81 * ts**2, atol=1e-12)
-    found = constant_mass(jl.System(lagrangian), jnp.zeros(2), jnp.zeros(2), T0,
-                          {"g": jnp.asarray(9.81), "key": jax.random.key(0), "count": jnp.array([3])})
+    found = constant_mass(
+        jl.System(lagrangian),
+        jnp.zeros(2),
+        jnp.zeros(2),
+        T0,
+        {"g": jnp.asarray(9.81), "key": jax.random.key(0), "count": jnp.array([3])},
+    )
     assert found is not None and found.inverse_diagonal is not None
 
 

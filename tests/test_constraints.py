@@ -38,6 +38,7 @@ def _controller(tol):
 # Models (all Lagrangians written out here, independently of jaxlag.systems)
 # --------------------------------------------------------------------------------------------
 
+
 def polar_pendulum_lagrangian(q, qd, args):
     # (r, θ), θ from the downward vertical: V = −m g r cos θ.
     r, th = q
@@ -85,10 +86,12 @@ def double_pendulum_cartesian_lagrangian(q, qd, args):
 
 def double_pendulum_links(q, args):
     x1, y1, x2, y2 = q
-    return jnp.array([
-        x1**2 + y1**2 - args["l1"] ** 2,
-        (x2 - x1) ** 2 + (y2 - y1) ** 2 - args["l2"] ** 2,
-    ])
+    return jnp.array(
+        [
+            x1**2 + y1**2 - args["l1"] ** 2,
+            (x2 - x1) ** 2 + (y2 - y1) ** 2 - args["l2"] ** 2,
+        ]
+    )
 
 
 def double_pendulum_angle_lagrangian(q, qd, args):
@@ -122,6 +125,7 @@ def angles_to_cartesian(th, w, args):
 # --------------------------------------------------------------------------------------------
 # Pendulum in polar coordinates
 # --------------------------------------------------------------------------------------------
+
 
 def test_polar_pendulum_matches_reduced_pendulum_and_tension():
     args = {"m": 1.3, "g": 9.81, "l": 0.9}
@@ -159,6 +163,7 @@ def test_polar_pendulum_matches_reduced_pendulum_and_tension():
 # --------------------------------------------------------------------------------------------
 # Particle on an Archimedean spiral
 # --------------------------------------------------------------------------------------------
+
 
 def test_particle_on_archimedean_spiral():
     a, m = 0.5, 2.0
@@ -214,8 +219,7 @@ SPHERE_TS = jnp.linspace(0.0, 1.6, 81)
 def _sphere_run(th0, args, ts, tol=1e-10):
     system = jl.System(sphere_lagrangian, holonomic=sphere_constraint)
     q0 = jnp.stack([jnp.asarray(args["R"], float), jnp.asarray(th0, float)])
-    return jl.simulate(system, q0, jnp.zeros(2), ts, args=args,
-                       stepsize_controller=_controller(tol))
+    return jl.simulate(system, q0, jnp.zeros(2), ts, args=args, stepsize_controller=_controller(tol))
 
 
 def test_particle_on_sphere_normal_force_and_release_angle():
@@ -241,8 +245,7 @@ def test_particle_on_sphere_normal_force_and_release_angle():
         return system.multipliers(y[0], y[1], t, args)[0]
 
     event = diffrax.Event(normal_force, root_finder=optx.Newton(rtol=1e-12, atol=1e-12))
-    hit = jl.simulate(system, q0, qd0, t0=0.0, t1=5.0, args=args, event=event,
-                      saveat=diffrax.SaveAt(t1=True))
+    hit = jl.simulate(system, q0, qd0, t0=0.0, t1=5.0, args=args, event=event, saveat=diffrax.SaveAt(t1=True))
     th_release = hit.q[-1, 1]
     assert 0.5 < float(hit.t[-1]) < 5.0
     # Root found to 1e-12 in t on an interpolant with local error ~1e-10: cos θ to ≲ 1e-9.
@@ -254,6 +257,7 @@ def test_particle_on_sphere_normal_force_and_release_angle():
 # Disk rolling down an incline
 # --------------------------------------------------------------------------------------------
 
+
 def test_disk_rolling_down_incline():
     args = {"m": 2.0, "R": 0.3, "g": 9.81, "alpha": 0.4}
     m, big_r, g, alpha = args["m"], args["R"], args["g"], args["alpha"]
@@ -261,8 +265,11 @@ def test_disk_rolling_down_incline():
     def lagrangian(q, qd, args):
         y, phi = q
         yd, phid = qd
-        return (0.5 * args["m"] * yd**2 + 0.25 * args["m"] * args["R"] ** 2 * phid**2
-                + args["m"] * args["g"] * y * jnp.sin(args["alpha"]))
+        return (
+            0.5 * args["m"] * yd**2
+            + 0.25 * args["m"] * args["R"] ** 2 * phid**2
+            + args["m"] * args["g"] * y * jnp.sin(args["alpha"])
+        )
 
     def rolling(q, args):
         return jnp.array([q[0] - args["R"] * q[1]])
@@ -295,6 +302,7 @@ def test_disk_rolling_down_incline():
 # Double pendulum: Cartesian with two distance constraints vs generalized angles
 # --------------------------------------------------------------------------------------------
 
+
 def test_cartesian_double_pendulum_matches_angle_formulation():
     args = DP_ARGS
     cartesian = jl.System(double_pendulum_cartesian_lagrangian, holonomic=double_pendulum_links)
@@ -317,6 +325,7 @@ def test_cartesian_double_pendulum_matches_angle_formulation():
 # --------------------------------------------------------------------------------------------
 # Rheonomic constraint: bead on a wire rotating at constant ω in a horizontal plane
 # --------------------------------------------------------------------------------------------
+
 
 def test_bead_on_rotating_wire():
     args = {"m": 0.8, "omega": 1.5}
@@ -362,6 +371,7 @@ def test_bead_on_rotating_wire():
 # Drift: 1000 periods of a Cartesian pendulum
 # --------------------------------------------------------------------------------------------
 
+
 def test_drift_over_1000_periods(capsys):
     args = {"m": 1.0, "g": 9.81, "l": 1.0}
     system = jl.System(cartesian_pendulum_lagrangian, holonomic=circle_constraint)
@@ -376,8 +386,7 @@ def test_drift_over_1000_periods(capsys):
     for name, options in [
         ("projection (default)", {}),
         ("projection=None", {"projection": None}),
-        ("Baumgarte(10, 10), no projection", {"projection": None,
-                                               "baumgarte": jl.Baumgarte(10.0, 10.0)}),
+        ("Baumgarte(10, 10), no projection", {"projection": None, "baumgarte": jl.Baumgarte(10.0, 10.0)}),
     ]:
         traj = jl.simulate(system, q0, qd0, ts, **common, **options)
         f, f_dot, _ = traj.constraint_residuals
@@ -391,8 +400,10 @@ def test_drift_over_1000_periods(capsys):
     with capsys.disabled():
         print("\n[drift] Cartesian pendulum, θ0 = 1 rad, 1000 periods (2006 s), Tsit5 rtol=atol=1e-10")
         for name, (f_max, fd_max, e_max, steps) in results.items():
-            print(f"[drift]   {name:34s} max|f| = {f_max:.2e}  max|ḟ| = {fd_max:.2e}  "
-                  f"max|Δh| = {e_max:.2e}  steps = {steps}")
+            print(
+                f"[drift]   {name:34s} max|f| = {f_max:.2e}  max|ḟ| = {fd_max:.2e}  "
+                f"max|Δh| = {e_max:.2e}  steps = {steps}"
+            )
 
     # The promise: the default projection holds the manifold to 1e-10 (measured: rounding, 2e-16).
     assert results["projection (default)"][0] <= 1e-10
@@ -406,6 +417,7 @@ def test_drift_over_1000_periods(capsys):
 # --------------------------------------------------------------------------------------------
 # consistent_initial_state
 # --------------------------------------------------------------------------------------------
+
 
 def test_consistent_initial_state_reaches_manifold():
     args = DP_ARGS
@@ -437,8 +449,7 @@ def test_consistent_initial_state_rheonomic_uses_t0():
     assert float(jnp.max(jnp.abs(f_dot))) <= 1e-12
     # Linear constraint: the position projection is exactly the M-orthogonal (here Euclidean) one.
     n = jnp.array([-math.sin(2 * t0), math.cos(2 * t0)])
-    np.testing.assert_allclose(q, jnp.array([1.0, 0.3]) - (n @ jnp.array([1.0, 0.3])) * n,
-                               atol=1e-14)
+    np.testing.assert_allclose(q, jnp.array([1.0, 0.3]) - (n @ jnp.array([1.0, 0.3])) * n, atol=1e-14)
 
 
 def test_consistent_initial_state_is_mass_weighted_minimal():
@@ -502,8 +513,7 @@ def test_consistent_initial_state_nonlinear_anisotropic_is_minimal_to_first_orde
     delta = 1e-3
     q_bad = np.array([math.cos(0.6), math.sin(0.6)]) + delta * np.array([0.6, -0.8])
     q, _ = jl.consistent_initial_state(system, q_bad, np.zeros(2))
-    mu = brentq(lambda mu: np.sum((masses * q_bad / (masses - 2 * mu)) ** 2) - 1.0, -1.0, 0.2,
-                xtol=1e-15)
+    mu = brentq(lambda mu: np.sum((masses * q_bad / (masses - 2 * mu)) ** 2) - 1.0, -1.0, 0.2, xtol=1e-15)
     q_star = masses * q_bad / (masses - 2 * mu)
     # Measured gap 1.6e-9 = 1.6e-3 δ²; the bound 1e-2 δ² = 1e-8 still fails any correction that
     # is wrong at first order (which would be off by ~δ = 1e-3).
@@ -520,12 +530,12 @@ PENDULUM_ARGS = {"m": 1.0, "g": 9.81, "l": 1.0}
 def test_off_manifold_initial_state_raises_with_pointer():
     system = jl.System(cartesian_pendulum_lagrangian, holonomic=circle_constraint)
     with pytest.raises(ValueError, match="consistent_initial_state"):
-        jl.simulate(system, jnp.array([0.5, -0.7]), jnp.zeros(2), jnp.array([0.0, 1.0]),
-                    args=PENDULUM_ARGS)
+        jl.simulate(system, jnp.array([0.5, -0.7]), jnp.zeros(2), jnp.array([0.0, 1.0]), args=PENDULUM_ARGS)
     # Off the velocity level only (on the circle, velocity radial).
     with pytest.raises(ValueError, match="consistent_initial_state"):
-        jl.simulate(system, jnp.array([0.0, -1.0]), jnp.array([0.0, 0.3]), jnp.array([0.0, 1.0]),
-                    args=PENDULUM_ARGS)
+        jl.simulate(
+            system, jnp.array([0.0, -1.0]), jnp.array([0.0, 0.3]), jnp.array([0.0, 1.0]), args=PENDULUM_ARGS
+        )
 
 
 def test_off_manifold_initial_state_raises_under_jit():
@@ -557,8 +567,7 @@ def test_redundant_constraints_name_the_dependent_row():
 
     system = jl.System(cartesian_pendulum_lagrangian, holonomic=twice)
     with pytest.raises(ValueError, match=r"dependent rows: holonomic\[1\]"):
-        jl.simulate(system, jnp.array([0.6, -0.8]), jnp.zeros(2), jnp.array([0.0, 0.1]),
-                    args=PENDULUM_ARGS)
+        jl.simulate(system, jnp.array([0.6, -0.8]), jnp.zeros(2), jnp.array([0.0, 0.1]), args=PENDULUM_ARGS)
 
 
 def test_least_squares_simulates_consistent_redundant_constraints():
@@ -589,13 +598,13 @@ def test_scalar_constraint_function_raises():
 
     system = jl.System(cartesian_pendulum_lagrangian, holonomic=scalar)
     with pytest.raises(ValueError, match=r"jnp\.array\(\[f\]\)"):
-        jl.simulate(system, jnp.array([0.6, -0.8]), jnp.zeros(2), jnp.array([0.0, 0.1]),
-                    args=PENDULUM_ARGS)
+        jl.simulate(system, jnp.array([0.6, -0.8]), jnp.zeros(2), jnp.array([0.0, 0.1]), args=PENDULUM_ARGS)
 
 
 # --------------------------------------------------------------------------------------------
 # jit / vmap / grad
 # --------------------------------------------------------------------------------------------
+
 
 def test_vmap_and_jit_over_sphere_starting_angles_equal_loop():
     ts = SPHERE_TS  # same shapes and options as the sphere test: the loop reuses its compilation
@@ -606,8 +615,9 @@ def test_vmap_and_jit_over_sphere_starting_angles_equal_loop():
     # Each batch element keeps its own adaptive step sequence; batched and scalar kernels differ
     # at most in rounding (measured 4e-16): 1e-12 bounds what rounding accumulates over the run.
     np.testing.assert_allclose(batched.q, jnp.stack([t.q for t in looped]), rtol=0, atol=1e-12)
-    np.testing.assert_allclose(batched.multipliers, jnp.stack([t.multipliers for t in looped]),
-                               rtol=0, atol=1e-11)  # λ is O(30): rounding (measured 2e-14)
+    np.testing.assert_allclose(
+        batched.multipliers, jnp.stack([t.multipliers for t in looped]), rtol=0, atol=1e-11
+    )  # λ is O(30): rounding (measured 2e-14)
     # Batched derived quantities still obey the closed form λ = m g (3 cos θ − 2 cos θ0)
     # (energy-error argument of the sphere test: 5e-8).
     m, g = SPHERE_ARGS["m"], SPHERE_ARGS["g"]
@@ -667,19 +677,29 @@ def _angle_accelerations(th, w, args):
     w1, w2 = w
     d = t1 - t2
     den = 2 * m1 + m2 - m2 * math.cos(2 * d)
-    a1 = (-g * (2 * m1 + m2) * math.sin(t1) - m2 * g * math.sin(t1 - 2 * t2)
-          - 2 * math.sin(d) * m2 * (w2**2 * l2 + w1**2 * l1 * math.cos(d))) / (l1 * den)
-    a2 = (2 * math.sin(d) * (w1**2 * l1 * (m1 + m2) + g * (m1 + m2) * math.cos(t1)
-                             + w2**2 * l2 * m2 * math.cos(d))) / (l2 * den)
+    a1 = (
+        -g * (2 * m1 + m2) * math.sin(t1)
+        - m2 * g * math.sin(t1 - 2 * t2)
+        - 2 * math.sin(d) * m2 * (w2**2 * l2 + w1**2 * l1 * math.cos(d))
+    ) / (l1 * den)
+    a2 = (
+        2
+        * math.sin(d)
+        * (w1**2 * l1 * (m1 + m2) + g * (m1 + m2) * math.cos(t1) + w2**2 * l2 * m2 * math.cos(d))
+    ) / (l2 * den)
     return a1, a2
 
 
 @settings(max_examples=10, deadline=None)
 @given(
-    th1=st.floats(-math.pi, math.pi), th2=st.floats(-math.pi, math.pi),
-    w1=st.floats(-4.0, 4.0), w2=st.floats(-4.0, 4.0),
-    m1=st.floats(0.2, 3.0), m2=st.floats(0.2, 3.0),
-    l1=st.floats(0.3, 2.0), l2=st.floats(0.3, 2.0),
+    th1=st.floats(-math.pi, math.pi),
+    th2=st.floats(-math.pi, math.pi),
+    w1=st.floats(-4.0, 4.0),
+    w2=st.floats(-4.0, 4.0),
+    m1=st.floats(0.2, 3.0),
+    m2=st.floats(0.2, 3.0),
+    l1=st.floats(0.3, 2.0),
+    l2=st.floats(0.3, 2.0),
 )
 def test_kkt_accelerations_satisfy_constraints_and_equations(th1, th2, w1, w2, m1, m2, l1, l2):
     args = {"m1": m1, "m2": m2, "l1": l1, "l2": l2, "g": 9.81}
@@ -715,9 +735,11 @@ def test_kkt_accelerations_satisfy_constraints_and_equations(th1, th2, w1, w2, m
 
 def test_declared_diagonal_mass_matrix_gives_the_same_motion():
     """diagonal_mass=True replaces the Cholesky of M by a division; the motion is unchanged."""
+
     def lagrangian(q, qd):
         return 0.5 * (1.3 * (qd[0] ** 2 + qd[1] ** 2) + 0.7 * (qd[2] ** 2 + qd[3] ** 2)) - 9.81 * (
-            1.3 * q[1] + 0.7 * q[3])
+            1.3 * q[1] + 0.7 * q[3]
+        )
 
     def rods(q):
         return jnp.array([q[0] ** 2 + q[1] ** 2 - 1.0, (q[2] - q[0]) ** 2 + (q[3] - q[1]) ** 2 - 1.0])
@@ -725,8 +747,7 @@ def test_declared_diagonal_mass_matrix_gives_the_same_motion():
     q0 = jnp.array([1.0, 0.0, 1.0, -1.0])
     ts = jnp.linspace(0.0, 2.0, 11)
     dense = jl.simulate(jl.System(lagrangian, holonomic=rods), q0, jnp.zeros(4), ts)
-    diagonal = jl.simulate(jl.System(lagrangian, holonomic=rods, diagonal_mass=True), q0,
-                           jnp.zeros(4), ts)
+    diagonal = jl.simulate(jl.System(lagrangian, holonomic=rods, diagonal_mass=True), q0, jnp.zeros(4), ts)
     # Same equations, different (exact) linear algebra: round-off amplified by the solver.
     np.testing.assert_allclose(diagonal.q, dense.q, atol=1e-9)
     np.testing.assert_allclose(diagonal.multipliers, dense.multipliers, atol=1e-8)
@@ -737,8 +758,9 @@ def test_declared_diagonal_mass_that_is_not_diagonal_is_an_error():
         return 0.5 * (qd[0] ** 2 + qd[1] ** 2) + 0.1 * qd[0] * qd[1]
 
     with pytest.raises(ValueError, match="diagonal_mass"):
-        jl.simulate(jl.System(lagrangian, diagonal_mass=True), jnp.zeros(2), jnp.ones(2),
-                    jnp.linspace(0.0, 1.0, 3))
+        jl.simulate(
+            jl.System(lagrangian, diagonal_mass=True), jnp.zeros(2), jnp.ones(2), jnp.linspace(0.0, 1.0, 3)
+        )
 
 
 def test_solve_kkt_accepts_a_matrix_or_a_solver():

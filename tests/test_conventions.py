@@ -85,10 +85,13 @@ def test_host_values_become_jax_arrays_without_compiling():
 
     with CompileCounter() as compiles:
         shape = (3, 7)  # a shape no other test converts
-        cases = [(np.linspace(0.0, 1.0, 21).reshape(shape), None),
-                 (np.arange(21).reshape(shape), None),
-                 (np.arange(21, dtype=np.float32).reshape(shape), jnp.float64),
-                 ([1.5, 2.5, 3.5, 4.5, 5.5, 6.5, 7.5], None), (2.75, jnp.float64)]
+        cases = [
+            (np.linspace(0.0, 1.0, 21).reshape(shape), None),
+            (np.arange(21).reshape(shape), None),
+            (np.arange(21, dtype=np.float32).reshape(shape), jnp.float64),
+            ([1.5, 2.5, 3.5, 4.5, 5.5, 6.5, 7.5], None),
+            (2.75, jnp.float64),
+        ]
         for value, dtype in cases:
             got = as_jax_array(value, dtype)
             assert isinstance(got, jax.Array)

@@ -29,10 +29,10 @@ finite = st.floats(-2.0, 2.0, allow_nan=False)
 
 def test_coordinate_maps():
     r, th, ph, z = 1.7, 0.4, -1.1, 0.3
-    np.testing.assert_allclose(coordinates.polar(r, th), [r * math.cos(th), r * math.sin(th)],
-                               rtol=1e-15)
-    np.testing.assert_allclose(coordinates.cylindrical(r, ph, z),
-                               [r * math.cos(ph), r * math.sin(ph), z], rtol=1e-15)
+    np.testing.assert_allclose(coordinates.polar(r, th), [r * math.cos(th), r * math.sin(th)], rtol=1e-15)
+    np.testing.assert_allclose(
+        coordinates.cylindrical(r, ph, z), [r * math.cos(ph), r * math.sin(ph), z], rtol=1e-15
+    )
     np.testing.assert_allclose(
         coordinates.spherical(r, th, ph),
         [r * math.sin(th) * math.cos(ph), r * math.sin(th) * math.sin(ph), r * math.cos(th)],
@@ -52,12 +52,14 @@ def test_spherical_kinetic_energy_matches_hand_derivation(state, m):
     r = abs(r) + 0.5
     args = {"m": m, "g": 9.81}
     lagrangian = coordinates.lagrangian_from_positions(
-        lambda q: coordinates.spherical(q[0], q[1], q[2]), masses=lambda a: a["m"],
+        lambda q: coordinates.spherical(q[0], q[1], q[2]),
+        masses=lambda a: a["m"],
         gravity=lambda a: a["g"],
     )
     q, qd = jnp.array([r, th, ph]), jnp.array([rd, thd, phd])
-    by_hand = 0.5 * m * (rd**2 + r**2 * thd**2 + r**2 * math.sin(th) ** 2 * phd**2) \
-        - m * 9.81 * r * math.cos(th)
+    by_hand = 0.5 * m * (rd**2 + r**2 * thd**2 + r**2 * math.sin(th) ** 2 * phd**2) - m * 9.81 * r * math.cos(
+        th
+    )
     np.testing.assert_allclose(lagrangian(q, qd, 0.0, args), by_hand, rtol=1e-12, atol=1e-12)
 
 
@@ -74,8 +76,7 @@ def test_time_dependent_map_gives_the_rotating_wire_lagrangian():
     for _ in range(3):
         r, rd, t = rng.normal(size=3)
         by_hand = 0.5 * m * (rd**2 + 4 * c**2 * r**2 * rd**2 + r**2 * w**2) - m * g * c * r**2
-        np.testing.assert_allclose(lagrangian(jnp.array([r]), jnp.array([rd]), t), by_hand,
-                                   rtol=1e-12)
+        np.testing.assert_allclose(lagrangian(jnp.array([r]), jnp.array([rd]), t), by_hand, rtol=1e-12)
 
 
 def test_potential_and_several_masses():
@@ -100,8 +101,12 @@ def test_potential_and_several_masses():
     # A backward-stable symmetric eigensolver gives every eigenvalue to a small multiple of
     # eps·‖M⁻¹K‖; 64 eps leaves room for the reduction to the standard problem.
     omega_squared = 2.0 * (1 + 1 / 3)
-    np.testing.assert_allclose(modes.frequencies_squared, [0.0, omega_squared], rtol=0,
-                               atol=64 * np.finfo(np.float64).eps * omega_squared)
+    np.testing.assert_allclose(
+        modes.frequencies_squared,
+        [0.0, omega_squared],
+        rtol=0,
+        atol=64 * np.finfo(np.float64).eps * omega_squared,
+    )
     # The frequencies then agree to √(64 eps ω²_max) at zero (square root of a round-off value) and
     # to round-off relative to the non-zero one.
     np.testing.assert_allclose(modes.frequencies[1], math.sqrt(omega_squared), rtol=1e-13)
@@ -116,22 +121,21 @@ def test_rigid_body_physical_pendulum():
         half = 0.5 * args["l"]
         return jnp.stack([half * jnp.sin(q[0]), -half * jnp.cos(q[0]), q[0]])
 
-    rod = coordinates.RigidBody2D(pose, mass=lambda a: a["m"],
-                                  inertia=lambda a: a["m"] * a["l"] ** 2 / 12)
+    rod = coordinates.RigidBody2D(pose, mass=lambda a: a["m"], inertia=lambda a: a["m"] * a["l"] ** 2 / 12)
     lagrangian = coordinates.lagrangian_from_positions(None, gravity=lambda a: a["g"], bodies=[rod])
     args = {"m": 2.0, "l": 1.5, "g": 9.81}
     th, thd = 0.4, -1.2
     by_hand = 2.0 * 1.5**2 * thd**2 / 6 + 0.5 * 2.0 * 9.81 * 1.5 * math.cos(th)
-    np.testing.assert_allclose(lagrangian(jnp.array([th]), jnp.array([thd]), 0.0, args), by_hand,
-                               rtol=1e-13)
+    np.testing.assert_allclose(lagrangian(jnp.array([th]), jnp.array([thd]), 0.0, args), by_hand, rtol=1e-13)
     modes = analysis.normal_modes(jl.System(lagrangian), jnp.zeros(1), args=args)
     np.testing.assert_allclose(modes.frequencies, [math.sqrt(3 * 9.81 / (2 * 1.5))], rtol=1e-13)
 
 
 def test_parameters_are_differentiable():
     # ∂L/∂m = T/m − g y for a single particle with masses=lambda a: a["m"].
-    lagrangian = coordinates.lagrangian_from_positions(lambda q: q, lambda a: a["m"],
-                                                       gravity=lambda a: a["g"])
+    lagrangian = coordinates.lagrangian_from_positions(
+        lambda q: q, lambda a: a["m"], gravity=lambda a: a["g"]
+    )
     q, qd = jnp.array([0.3, -0.4]), jnp.array([1.0, 2.0])
     grads = jax.jit(jax.grad(lambda a: lagrangian(q, qd, 0.0, a)))({"m": 1.5, "g": 9.81})
     np.testing.assert_allclose(grads["m"], 0.5 * 5.0 - 9.81 * (-0.4), rtol=1e-14)

@@ -54,8 +54,10 @@ def on_rod():
 
 def double_states(batch):
     s = jnp.linspace(0.0, 1.0, batch)
-    return (jnp.stack([2.0 - 1.5 * s, -0.5 + jnp.sin(7.0 * s)], axis=1),
-            jnp.stack([0.3 * jnp.cos(5.0 * s), -1.1 + 0.5 * s], axis=1))
+    return (
+        jnp.stack([2.0 - 1.5 * s, -0.5 + jnp.sin(7.0 * s)], axis=1),
+        jnp.stack([0.3 * jnp.cos(5.0 * s), -1.1 + 0.5 * s], axis=1),
+    )
 
 
 @pytest.mark.parametrize("solver", [diffrax.Tsit5(), jl.RK4()], ids=["Tsit5", "RK4"])
@@ -93,25 +95,51 @@ def test_adaptive_members_take_their_own_steps_and_match_the_closed_form():
     ts = jnp.linspace(0.0, 2.0, 9)
     tol = 1e-8
     batch = jl.simulate_batch(
-        OSCILLATOR, jnp.ones((2, 1)), jnp.zeros((2, 1)), ts, args={"w": ws}, args_axes=0,
-        method="ensemble", stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol))
+        OSCILLATOR,
+        jnp.ones((2, 1)),
+        jnp.zeros((2, 1)),
+        ts,
+        args={"w": ws},
+        args_axes=0,
+        method="ensemble",
+        stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
+    )
     dopri = jl.simulate_batch(
-        OSCILLATOR, jnp.ones((2, 1)), jnp.zeros((2, 1)), ts, args={"w": ws}, args_axes=0,
-        method="ensemble", solver=diffrax.Dopri5(),
-        stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol))
+        OSCILLATOR,
+        jnp.ones((2, 1)),
+        jnp.zeros((2, 1)),
+        ts,
+        args={"w": ws},
+        args_axes=0,
+        method="ensemble",
+        solver=diffrax.Dopri5(),
+        stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
+    )
     exact = jnp.cos(ws[:, None] * ts)
     assert jnp.max(jnp.abs(dopri.q[0, :, 0] - exact[0])) < 10 * tol
     assert jnp.max(jnp.abs(dopri.q[1, :, 0] - exact[1])) < 200 * tol
     error = jnp.max(jnp.abs(batch.q[..., 0] - exact), axis=1)
     steps = np.asarray(batch.stats["num_accepted_steps"])
-    print("accepted steps per member (w = 1, 50):", steps,
-          "rejected:", np.asarray(batch.stats["num_rejected_steps"]), "max error:", error)
+    print(
+        "accepted steps per member (w = 1, 50):",
+        steps,
+        "rejected:",
+        np.asarray(batch.stats["num_rejected_steps"]),
+        "max error:",
+        error,
+    )
     assert steps[1] > 10 * steps[0]
     # Global error ≈ tolerance × the number of steps (local errors add up); 100 periods at w = 50.
     assert error[0] < 10 * tol and error[1] < 200 * tol
     for i in range(2):
-        single = jl.simulate(OSCILLATOR, jnp.ones(1), jnp.zeros(1), ts, args={"w": ws[i]},
-                             stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol))
+        single = jl.simulate(
+            OSCILLATOR,
+            jnp.ones(1),
+            jnp.zeros(1),
+            ts,
+            args={"w": ws[i]},
+            stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
+        )
         assert jnp.max(jnp.abs(batch.q[i] - single.q)) < 2 * max(error[i], tol) + 1e-12
 
 
@@ -120,14 +148,30 @@ def test_constrained_members_stay_on_the_manifold():
     ts = jnp.linspace(0.0, 3.0, 7)
     args = {"g": 9.81, "l": LENGTHS}
     for controller, dt0 in ((diffrax.PIDController(rtol=1e-9, atol=1e-9), None), (CONSTANT, 0.01)):
-        batch = jl.simulate_batch(PENDULUM_XY, q0, qd0, ts, args=args, args_axes={"l": 0, "g": None},
-                                  method="ensemble", stepsize_controller=controller, dt0=dt0)
+        batch = jl.simulate_batch(
+            PENDULUM_XY,
+            q0,
+            qd0,
+            ts,
+            args=args,
+            args_axes={"l": 0, "g": None},
+            method="ensemble",
+            stepsize_controller=controller,
+            dt0=dt0,
+        )
         f, f_dot, _ = batch.constraint_residuals
         assert jnp.max(jnp.abs(f)) <= 1e-10 and jnp.max(jnp.abs(f_dot)) <= 1e-10
         if dt0 is not None:  # same steps, same projection: diffrax's result to rounding
             for i in range(3):
-                single = jl.simulate(PENDULUM_XY, q0[i], qd0[i], ts, dt0=dt0,
-                                     args={"g": 9.81, "l": LENGTHS[i]}, stepsize_controller=controller)
+                single = jl.simulate(
+                    PENDULUM_XY,
+                    q0[i],
+                    qd0[i],
+                    ts,
+                    dt0=dt0,
+                    args={"g": 9.81, "l": LENGTHS[i]},
+                    stepsize_controller=controller,
+                )
                 np.testing.assert_allclose(batch.q[i], single.q, rtol=0, atol=1e-12)
 
 
@@ -136,8 +180,9 @@ def test_second_call_with_new_values_does_not_recompile():
 
     ts = jnp.linspace(0.0, 1.0, 3)
     options = dict(args_axes=0, method="ensemble", stepsize_controller=CONSTANT, dt0=0.01)
-    jl.simulate_batch(OSCILLATOR, jnp.ones((2, 1)), jnp.zeros((2, 1)), ts,
-                      args={"w": jnp.array([1.0, 2.0])}, **options)
+    jl.simulate_batch(
+        OSCILLATOR, jnp.ones((2, 1)), jnp.zeros((2, 1)), ts, args={"w": jnp.array([1.0, 2.0])}, **options
+    )
     q0, qd0, ws = jnp.full((2, 1), 0.5, dtype=jnp.float64), jnp.zeros((2, 1)), jnp.array([3.0, 4.0])
     with CompileCounter() as counter:
         again = jl.simulate_batch(OSCILLATOR, q0, qd0, ts, args={"w": ws}, **options)
@@ -150,8 +195,14 @@ def test_velocity_constraints_knife_edge_matches_the_closed_form():
     omegas = jnp.array([1.0, 2.0])
     ts = jnp.linspace(0.0, 2.0, 5)
     qd0 = jnp.stack([jnp.zeros(2), jnp.zeros(2), omegas], axis=1)
-    batch = jl.simulate_batch(skate, jnp.zeros(3), qd0, ts, method="ensemble",
-                              stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10))
+    batch = jl.simulate_batch(
+        skate,
+        jnp.zeros(3),
+        qd0,
+        ts,
+        method="ensemble",
+        stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
+    )
     p = jl.systems.knife_edge.defaults
     scale = p["g"] * np.sin(p["alpha"]) / (2 * omegas[:, None] ** 2)
     wt = omegas[:, None] * ts
@@ -163,9 +214,15 @@ def test_velocity_constraints_knife_edge_matches_the_closed_form():
 
 def test_per_member_save_times_and_shared_initial_state():
     ts = jnp.array([[0.0, 0.5, 1.0], [0.0, 0.25, 2.0]])
-    batch = jl.simulate_batch(OSCILLATOR, jnp.ones(1), jnp.zeros(1), ts, args={"w": 2.0},
-                              method="ensemble",
-                              stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10))
+    batch = jl.simulate_batch(
+        OSCILLATOR,
+        jnp.ones(1),
+        jnp.zeros(1),
+        ts,
+        args={"w": 2.0},
+        method="ensemble",
+        stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
+    )
     np.testing.assert_array_equal(batch.t, ts)
     np.testing.assert_allclose(batch.q[..., 0], jnp.cos(2.0 * ts), atol=1e-8)
 
@@ -176,12 +233,12 @@ def test_pallas_interpret_equals_the_xla_loop(monkeypatch):
     monkeypatch.setattr(kernel, "BLOCK", 2)  # 3 members: two programs, one padded member
     lanewise = []
     original = kernel._lanes_integrate
-    monkeypatch.setattr(kernel, "_lanes_integrate",
-                        lambda *a, **k: lanewise.append(1) or original(*a, **k))
+    monkeypatch.setattr(kernel, "_lanes_integrate", lambda *a, **k: lanewise.append(1) or original(*a, **k))
     q0, qd0 = on_rod()
     args = {"g": 9.81, "l": LENGTHS}
-    options = dict(args=args, args_axes={"l": 0, "g": None}, method="ensemble",
-                   stepsize_controller=CONSTANT, dt0=0.05)
+    options = dict(
+        args=args, args_axes={"l": 0, "g": None}, method="ensemble", stepsize_controller=CONSTANT, dt0=0.05
+    )
     # Shared save times: the lane-wise kernel (KKT solve and projection as column code);
     # per-member save times: the kernel on (block, n) arrays.
     for ts in (jnp.linspace(0.0, 1.0, 3), jnp.array([[0.0, 0.5, 1.0], [0.0, 0.3, 1.0], [0.0, 0.5, 0.9]])):
@@ -193,8 +250,9 @@ def test_pallas_interpret_equals_the_xla_loop(monkeypatch):
     assert len(lanewise) == 1
     if jax.default_backend() == "cpu":  # no compiled Pallas on CPU: a warning and the XLA loop
         with pytest.warns(RuntimeWarning, match="did not lower.*XLA loop"):
-            fallback = jax.jit(lambda q: jl.simulate_batch(PENDULUM_XY, q, qd0, ts, backend="pallas",
-                                                           **options).q)(q0)
+            fallback = jax.jit(
+                lambda q: jl.simulate_batch(PENDULUM_XY, q, qd0, ts, backend="pallas", **options).q
+            )(q0)
         # The same loop compiled inside a user jit (returning q only): rounding may differ by an ulp.
         np.testing.assert_allclose(fallback, xla.q, rtol=0, atol=1e-14)
 
@@ -204,10 +262,19 @@ def test_gradients_match_closed_form_and_central_differences():
     adaptive = diffrax.PIDController(rtol=1e-10, atol=1e-10)
 
     def loss(w, controller, adjoint=None):
-        traj = jl.simulate_batch(OSCILLATOR, jnp.ones((2, 1)), jnp.zeros((2, 1)), ts,
-                                 args={"w": w}, args_axes=0, method="ensemble", max_steps=500,
-                                 stepsize_controller=controller, adjoint=adjoint,
-                                 dt0=0.01 if controller is CONSTANT else None)
+        traj = jl.simulate_batch(
+            OSCILLATOR,
+            jnp.ones((2, 1)),
+            jnp.zeros((2, 1)),
+            ts,
+            args={"w": w},
+            args_axes=0,
+            method="ensemble",
+            max_steps=500,
+            stepsize_controller=controller,
+            adjoint=adjoint,
+            dt0=0.01 if controller is CONSTANT else None,
+        )
         return jnp.sum(traj.q[..., 0] ** 2 * jnp.array([0.0, 2.0, 1.0]))  # every save counts
 
     w = jnp.array([1.0, 3.0])
@@ -215,14 +282,19 @@ def test_gradients_match_closed_form_and_central_differences():
     exact = -(2.0 * 0.5 * jnp.sin(w) + jnp.sin(2 * w))
     eps = 1e-5
     for controller in (CONSTANT, adaptive):
-        fd = jnp.array([(loss(w.at[i].add(eps), controller) - loss(w.at[i].add(-eps), controller))
-                        / (2 * eps) for i in range(2)])
+        fd = jnp.array(
+            [
+                (loss(w.at[i].add(eps), controller) - loss(w.at[i].add(-eps), controller)) / (2 * eps)
+                for i in range(2)
+            ]
+        )
         # reverse: scan of checkpointed steps / equinox's checkpointed while loop
         reverse = jax.jit(jax.grad(loss), static_argnums=1)(w, controller)
         # forward: jvp through the scan / the lax while loop
         forward = jax.jacfwd(loss)(w, controller, diffrax.ForwardMode())
-        print(type(controller).__name__, "reverse", reverse, "forward", forward, "central", fd,
-              "exact", exact)
+        print(
+            type(controller).__name__, "reverse", reverse, "forward", forward, "central", fd, "exact", exact
+        )
         np.testing.assert_allclose(reverse, exact, rtol=1e-7)
         # Adaptive: central differences also see the step sizes change with w (O(tol / eps)).
         np.testing.assert_allclose(reverse, fd, rtol=1e-8 if controller is CONSTANT else 1e-5)
@@ -244,9 +316,18 @@ def test_pallas_kernel_is_differentiable():
     ts = jnp.linspace(0.0, 1.0, 3)
 
     def loss(w, backend):
-        traj = jl.simulate_batch(system, jnp.ones((2, 1)), jnp.zeros((2, 1)), ts,
-                                 args={"w": w}, args_axes=0, method="ensemble", backend=backend,
-                                 stepsize_controller=CONSTANT, dt0=0.05)
+        traj = jl.simulate_batch(
+            system,
+            jnp.ones((2, 1)),
+            jnp.zeros((2, 1)),
+            ts,
+            args={"w": w},
+            args_axes=0,
+            method="ensemble",
+            backend=backend,
+            stepsize_controller=CONSTANT,
+            dt0=0.05,
+        )
         return jnp.sum(traj.q[:, -1] ** 2)
 
     w = jnp.array([1.0, 2.0])
@@ -261,9 +342,17 @@ def test_vmap_over_the_ensemble_call():
     ts = jnp.linspace(0.0, 1.0, 3)
 
     def run(w):
-        return jl.simulate_batch(OSCILLATOR, jnp.ones((2, 1)), jnp.zeros((2, 1)), ts,
-                                 args={"w": jnp.stack([w, 2 * w])}, args_axes=0, method="ensemble",
-                                 stepsize_controller=CONSTANT, dt0=0.01).q[..., 0]
+        return jl.simulate_batch(
+            OSCILLATOR,
+            jnp.ones((2, 1)),
+            jnp.zeros((2, 1)),
+            ts,
+            args={"w": jnp.stack([w, 2 * w])},
+            args_axes=0,
+            method="ensemble",
+            stepsize_controller=CONSTANT,
+            dt0=0.01,
+        ).q[..., 0]
 
     out = jax.vmap(run)(jnp.array([1.0, 3.0]))
     ws = jnp.array([[1.0, 2.0], [3.0, 6.0]])
@@ -273,10 +362,19 @@ def test_vmap_over_the_ensemble_call():
 def test_auto_is_vmap_on_cpu_and_unchanged():
     ts = jnp.linspace(0.0, 1.0, 3)
     q0, qd0 = double_states(2)
-    auto = jl.simulate_batch(OSCILLATOR, q0[:, :1], qd0[:, :1], ts, args={"w": 2.0},
-                             stepsize_controller=CONSTANT, dt0=0.05)
-    vmapped = jl.simulate_batch(OSCILLATOR, q0[:, :1], qd0[:, :1], ts, args={"w": 2.0},
-                                stepsize_controller=CONSTANT, dt0=0.05, method="vmap")
+    auto = jl.simulate_batch(
+        OSCILLATOR, q0[:, :1], qd0[:, :1], ts, args={"w": 2.0}, stepsize_controller=CONSTANT, dt0=0.05
+    )
+    vmapped = jl.simulate_batch(
+        OSCILLATOR,
+        q0[:, :1],
+        qd0[:, :1],
+        ts,
+        args={"w": 2.0},
+        stepsize_controller=CONSTANT,
+        dt0=0.05,
+        method="vmap",
+    )
     np.testing.assert_array_equal(auto.q, vmapped.q)
 
 
@@ -284,26 +382,33 @@ def test_bad_input_gets_a_clear_error():
     ts = jnp.linspace(0.0, 1.0, 3)
     q0, qd0 = double_states(2)
     with pytest.raises(TypeError, match="Butcher tableau.*method='vmap'"):
-        jl.simulate_batch(DOUBLE, q0, qd0, ts, method="ensemble", solver=diffrax.ReversibleHeun(),
-                          stepsize_controller=CONSTANT, dt0=0.1)
+        jl.simulate_batch(
+            DOUBLE,
+            q0,
+            qd0,
+            ts,
+            method="ensemble",
+            solver=diffrax.ReversibleHeun(),
+            stepsize_controller=CONSTANT,
+            dt0=0.1,
+        )
     with pytest.raises(ValueError, match="Event.*method='vmap'"):
-        jl.simulate_batch(DOUBLE, q0, qd0, ts, method="ensemble",
-                          events=[jl.Event(lambda q, qd: q[0])])
+        jl.simulate_batch(DOUBLE, q0, qd0, ts, method="ensemble", events=[jl.Event(lambda q, qd: q[0])])
     sphere = jl.systems.particle_on_sphere(unilateral=True)
     with pytest.raises(ValueError, match="unilateral.*method='vmap'"):
-        jl.simulate_batch(sphere, jnp.array([[2.0, 0.1]]), jnp.zeros((1, 2)), ts,
-                          method="ensemble")
+        jl.simulate_batch(sphere, jnp.array([[2.0, 0.1]]), jnp.zeros((1, 2)), ts, method="ensemble")
     with pytest.raises(ValueError, match="no error estimate"):
         jl.simulate_batch(DOUBLE, q0, qd0, ts, method="ensemble", solver=jl.RK4())
     with pytest.raises(ValueError, match="need 1000 steps, more than max_steps=10"):
-        jl.simulate_batch(DOUBLE, q0, qd0, ts, method="ensemble", stepsize_controller=CONSTANT,
-                          dt0=1e-3, max_steps=10)
+        jl.simulate_batch(
+            DOUBLE, q0, qd0, ts, method="ensemble", stepsize_controller=CONSTANT, dt0=1e-3, max_steps=10
+        )
     ones = jnp.ones((2, 1))
     with pytest.raises(Exception, match="max_steps=5"):
-        jl.simulate_batch(OSCILLATOR, ones, ones, ts, args={"w": 1.0}, method="ensemble",
-                          max_steps=5)
-    partial = jl.simulate_batch(OSCILLATOR, ones, ones, ts, args={"w": 1.0}, method="ensemble",
-                                max_steps=5, throw=False)
+        jl.simulate_batch(OSCILLATOR, ones, ones, ts, args={"w": 1.0}, method="ensemble", max_steps=5)
+    partial = jl.simulate_batch(
+        OSCILLATOR, ones, ones, ts, args={"w": 1.0}, method="ensemble", max_steps=5, throw=False
+    )
     assert not jnp.any(partial.result == diffrax.RESULTS.successful)
     assert jnp.all(partial.stats["num_steps"] == 5)
     with pytest.raises(ValueError, match="method must be"):
@@ -328,10 +433,10 @@ def test_sharded_over_two_devices_equals_unsharded():
             np.testing.assert_allclose(two.q, one.q, rtol=0, atol=1e-12)
         print("ok")
     """)
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
-               PYTHONPATH=os.pathsep.join(sys.path))
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                         timeout=600)
+    env = dict(
+        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", PYTHONPATH=os.pathsep.join(sys.path)
+    )
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0 and "ok" in out.stdout, out.stderr[-3000:]
 
 

@@ -84,8 +84,11 @@ def test_host_and_compiled_initial_checks_agree():
         (jl.System(lambda q, qd: 0.5 * qd[0] ** 2 - 0.5 * jnp.sum(q**2)), [1.0, 2.0], [0.0, 0.0]),
         (jl.System(pendulum, lambda q: jnp.array([jnp.sum(q**2) - 1.0])), [0.6, -0.8], [0.8, 0.6]),
         (jl.System(pendulum, lambda q: jnp.array([jnp.sum(q**2) - 1.0])), [0.7, -0.8], [0.0, 1.0]),
-        (jl.System(pendulum, lambda q: jnp.array([jnp.sum(q**2) - 1.0, 2 * jnp.sum(q**2) - 2.0])),
-         [0.6, -0.8], [0.8, 0.6]),  # redundant rows
+        (
+            jl.System(pendulum, lambda q: jnp.array([jnp.sum(q**2) - 1.0, 2 * jnp.sum(q**2) - 2.0])),
+            [0.6, -0.8],
+            [0.8, 0.6],
+        ),  # redundant rows
     ]
     args = {"g": 9.81}
     for system, q, qd in cases:

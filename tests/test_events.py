@@ -28,8 +28,7 @@ TS = jnp.linspace(0.0, 1.6, 33)
 
 
 def release(theta0, g=G, thetad0=0.0):
-    return jl.simulate(SPHERE, jnp.array([R, theta0]), jnp.array([0.0, thetad0]), TS,
-                       args={"g": g, "R": R})
+    return jl.simulate(SPHERE, jnp.array([R, theta0]), jnp.array([0.0, thetad0]), TS, args={"g": g, "R": R})
 
 
 def test_particle_leaves_sphere_at_two_thirds_cos_theta0():
@@ -75,9 +74,15 @@ def test_stitched_trajectory_is_continuous_and_conserves_energy():
     # state on the constrained branch (no jump at a release).
     t_e = traj.events.time[0]
     i = int(jnp.searchsorted(TS, t_e))
-    dense = jl.simulate(SPHERE, traj.q[i - 1], traj.qd[i - 1],
-                        jnp.array([TS[i - 1], t_e]), args=ARGS, max_segments=1,
-                        throw=False)
+    dense = jl.simulate(
+        SPHERE,
+        traj.q[i - 1],
+        traj.qd[i - 1],
+        jnp.array([TS[i - 1], t_e]),
+        args=ARGS,
+        max_segments=1,
+        throw=False,
+    )
     np.testing.assert_allclose(dense.q[-1], traj.events.q[0], atol=1e-9)
     np.testing.assert_allclose(dense.qd[-1], traj.events.qd[0], atol=1e-8)
 
@@ -97,8 +102,7 @@ def test_string_pendulum_goes_slack_then_taut_again():
     v0 = math.sqrt(3.5 * g * l)  # between √(2gl) and √(5gl): slack above the horizontal
     system = jl.System(string_lagrangian, holonomic=string, unilateral=0)
     ts = jnp.linspace(0.0, 2.0, 201)
-    traj = jl.simulate(system, jnp.array([l, 0.0]), jnp.array([0.0, v0 / l]), ts,
-                       args={"g": g, "l": l})
+    traj = jl.simulate(system, jnp.array([l, 0.0]), jnp.array([0.0, v0 / l]), ts, args={"g": g, "l": l})
     kinds = traj.events.kinds()
     assert kinds[:2] == ["release", "contact"], kinds
     # Tension T = m v²/l + m g cos θ with v² = v0² − 2gl(1 − cos θ) vanishes at
@@ -124,7 +128,11 @@ def test_user_events_terminal_and_recorded():
         return multipliers[0] - 0.5 * G  # normal force drops below half the weight: stop
 
     traj = jl.simulate(
-        SPHERE, jnp.array([R, 0.1]), jnp.zeros(2), TS, args=ARGS,
+        SPHERE,
+        jnp.array([R, 0.1]),
+        jnp.zeros(2),
+        TS,
+        args=ARGS,
         events=[jl.Event(angle_passes, terminal=False), jl.Event(force_limit, direction=False)],
     )
     kinds = traj.events.kinds()
@@ -188,8 +196,14 @@ def test_wrong_sign_multiplier_at_start_is_an_error():
 def test_too_few_segments_is_an_error():
     system = jl.System(string_lagrangian, holonomic=string, unilateral=0)
     with pytest.raises(Exception, match="max_segments"):
-        jl.simulate(system, jnp.array([1.0, 0.0]), jnp.array([0.0, math.sqrt(3.5 * 9.81)]),
-                    jnp.linspace(0.0, 2.0, 21), args={"g": 9.81, "l": 1.0}, max_segments=1)
+        jl.simulate(
+            system,
+            jnp.array([1.0, 0.0]),
+            jnp.array([0.0, math.sqrt(3.5 * 9.81)]),
+            jnp.linspace(0.0, 2.0, 21),
+            args={"g": 9.81, "l": 1.0},
+            max_segments=1,
+        )
 
 
 def rim_loop(q, qd, args):
@@ -201,17 +215,21 @@ def rim_loop(q, qd, args):
 
 def test_force_limit_event_on_a_loop():
     # Inside a loop the track pushes inward: f = ρ − r ≥ 0 with λ = m v²/ρ + m g cos θ ≥ 0.
-    system = jl.System(rim_loop, holonomic=lambda q, args: jnp.array([args["rho"] - q[0]]),
-                       unilateral=0)
+    system = jl.System(rim_loop, holonomic=lambda q, args: jnp.array([args["rho"] - q[0]]), unilateral=0)
     g, rho, v0 = 9.81, 1.0, 6.0
     limit = 3.0 * g  # "3 g" on the rider
     ts = jnp.linspace(0.0, 0.5, 11)
     # Entering at the bottom the load is v0²/ρ + g = 45.8 > 3g; it drops as the car climbs:
     # v² = v0² − 2gρ(1 − cos θ) gives λ = v0²/ρ − 2g + 3g cos θ, equal to the limit at
     # cos θ = (limit − v0²/ρ + 2g)/(3g).
-    traj = jl.simulate(system, jnp.array([rho, 0.0]), jnp.array([0.0, v0 / rho]), ts,
-                       args={"g": g, "rho": rho},
-                       events=[jl.multiplier_limit(0, limit, below=True)])
+    traj = jl.simulate(
+        system,
+        jnp.array([rho, 0.0]),
+        jnp.array([0.0, v0 / rho]),
+        ts,
+        args={"g": g, "rho": rho},
+        events=[jl.multiplier_limit(0, limit, below=True)],
+    )
     assert traj.events.kinds()[0] == "user"
     cos_theta = (limit - v0**2 / rho + 2 * g) / (3 * g)
     np.testing.assert_allclose(math.cos(traj.events.q[0, 1]), cos_theta, atol=1e-10)

@@ -63,24 +63,20 @@ def test_event_on_an_unconstrained_system(mode):
     event = [jl.Event(lambda q, qd: q[0])]
 
     def first_event(g):
-        traj = jl.simulate(PENDULUM, jnp.array([0.3]), jnp.zeros(1), TS, args={"g": g},
-                           events=event)
+        traj = jl.simulate(PENDULUM, jnp.array([0.3]), jnp.zeros(1), TS, args={"g": g}, events=event)
         return traj.events.time[..., 0]
 
     g = 9.81
     expected = ellipk(np.sin(0.15) ** 2) / np.sqrt(g)
-    np.testing.assert_allclose(run_in(mode, first_event, jnp.asarray(g)).reshape(()), expected,
-                               rtol=1e-9)
+    np.testing.assert_allclose(run_in(mode, first_event, jnp.asarray(g)).reshape(()), expected, rtol=1e-9)
     # d t/d g = −t/(2g) through the event time.
     np.testing.assert_allclose(jax.grad(first_event)(g), -expected / (2 * g), rtol=1e-7)
 
 
 def test_recorded_event_and_multipliers_keyword_on_an_unconstrained_system():
     """A non-terminal event is logged and the run goes on; `multipliers` is empty (no λ)."""
-    event = jl.Event(lambda q, qd, multipliers: q[0] + 0.0 * jnp.sum(multipliers),
-                     terminal=False)
-    traj = jl.simulate(PENDULUM, jnp.array([0.3]), jnp.zeros(1), TS, args={"g": 9.81},
-                       events=event)
+    event = jl.Event(lambda q, qd, multipliers: q[0] + 0.0 * jnp.sum(multipliers), terminal=False)
+    traj = jl.simulate(PENDULUM, jnp.array([0.3]), jnp.zeros(1), TS, args={"g": 9.81}, events=event)
     quarter = ellipk(np.sin(0.15) ** 2) / np.sqrt(9.81)
     assert traj.events.kinds()[:2] == ["user", "end"]
     np.testing.assert_allclose(traj.events.time[0], quarter, rtol=1e-9)
@@ -91,8 +87,7 @@ def test_recorded_event_and_multipliers_keyword_on_an_unconstrained_system():
 @pytest.mark.parametrize("mode", MODES)
 def test_nan_parameter_is_named(mode):
     def run(g):
-        return jl.simulate(CARTESIAN, jnp.array([1.0, 0.0]), jnp.zeros(2), TS,
-                           args={"g": g, "l": 1.0}).q
+        return jl.simulate(CARTESIAN, jnp.array([1.0, 0.0]), jnp.zeros(2), TS, args={"g": g, "l": 1.0}).q
 
     with raises(mode, ValueError, r"not finite \(NaN or inf\): args\['g'\]"):
         run_in(mode, run, jnp.asarray(jnp.nan))
@@ -101,8 +96,7 @@ def test_nan_parameter_is_named(mode):
 @pytest.mark.parametrize("mode", MODES)
 def test_nan_length_is_a_parameter_error_not_off_manifold(mode):
     def run(l):
-        return jl.simulate(CARTESIAN, jnp.array([1.0, 0.0]), jnp.zeros(2), TS,
-                           args={"g": 9.81, "l": l}).q
+        return jl.simulate(CARTESIAN, jnp.array([1.0, 0.0]), jnp.zeros(2), TS, args={"g": 9.81, "l": l}).q
 
     with raises(mode, ValueError, r"args\['l'\]"):
         run_in(mode, run, jnp.asarray(jnp.nan))
@@ -137,13 +131,26 @@ def test_nan_mid_run_stops_at_once_and_diagnoses():
 
 
 def test_nan_with_constant_steps_stops_at_the_first_nan_step():
-    traj = jl.simulate(POWER, jnp.array([1.0]), jnp.array([-3.0]), TS, throw=False,
-                       stepsize_controller=diffrax.ConstantStepSize(), dt0=0.01)
+    traj = jl.simulate(
+        POWER,
+        jnp.array([1.0]),
+        jnp.array([-3.0]),
+        TS,
+        throw=False,
+        stepsize_controller=diffrax.ConstantStepSize(),
+        dt0=0.01,
+    )
     assert int(traj.failure.code) == 1
     assert 0.3 <= float(traj.failure.t) <= power_crossing_time()
     with pytest.raises(jl.SimulationError, match="non-finite"):
-        jl.simulate(POWER, jnp.array([1.0]), jnp.array([-3.0]), TS,
-                    stepsize_controller=diffrax.ConstantStepSize(), dt0=0.01)
+        jl.simulate(
+            POWER,
+            jnp.array([1.0]),
+            jnp.array([-3.0]),
+            TS,
+            stepsize_controller=diffrax.ConstantStepSize(),
+            dt0=0.01,
+        )
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -172,8 +179,11 @@ def test_one_failing_batch_member():
 def test_batch_member_with_a_bad_initial_state_is_named():
     q0s = jnp.array([[1.0, 0.0], [jnp.nan, 0.0], [0.0, -1.0]])
     args = {"g": 9.81, "l": 1.0}
-    with pytest.raises(ValueError, match=r"1 of 3 batch members failed \(first: member \[1\]\).*"
-                                         r"initial state is not finite"):
+    with pytest.raises(
+        ValueError,
+        match=r"1 of 3 batch members failed \(first: member \[1\]\).*"
+        r"initial state is not finite",
+    ):
         jl.simulate_batch(CARTESIAN, q0s, jnp.zeros(2), TS, args=args)
 
 
@@ -200,16 +210,22 @@ def test_float32_runs_constrained_systems(tmp_path):
     """Without x64: the default tolerances follow the dtype (solver 100 ulps = 1.2e-5,
     constraints √ε = 3.5e-4), so the pendulum runs; errors say that x64 is off."""
     out = tmp_path / "q.npy"
-    result = subprocess.run([sys.executable, "-c", FLOAT32, str(out)], capture_output=True,
-                            text=True, env={"JAX_ENABLE_X64": "0", "PATH": "",
-                                            "JAX_PLATFORMS": "cpu",
-                                            "XDG_CACHE_HOME": str(tmp_path)}, timeout=1800)
+    result = subprocess.run(
+        [sys.executable, "-c", FLOAT32, str(out)],
+        capture_output=True,
+        text=True,
+        env={"JAX_ENABLE_X64": "0", "PATH": "", "JAX_PLATFORMS": "cpu", "XDG_CACHE_HOME": str(tmp_path)},
+        timeout=1800,
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     assert "jax_enable_x64 is off" in result.stdout
     q32 = np.load(out)
-    x64 = jl.simulate(jl.System(lambda q, qd: 0.5 * (qd @ qd) - 9.81 * q[1],
-                                holonomic=lambda q: jnp.array([q @ q - 1.0])),
-                      jnp.array([np.sin(0.3), -np.cos(0.3)]), jnp.zeros(2), jnp.linspace(0, 1, 11))
+    x64 = jl.simulate(
+        jl.System(lambda q, qd: 0.5 * (qd @ qd) - 9.81 * q[1], holonomic=lambda q: jnp.array([q @ q - 1.0])),
+        jnp.array([np.sin(0.3), -np.cos(0.3)]),
+        jnp.zeros(2),
+        jnp.linspace(0, 1, 11),
+    )
     # rtol 1.2e-5 per unit time over ~1 s of a pendulum: ~1e-4 absolute is the float32 budget.
     np.testing.assert_allclose(q32, x64.q, atol=2e-4)
     np.testing.assert_allclose(np.sum(q32**2, axis=1), 1.0, atol=1e-5)  # projected: round-off
@@ -230,8 +246,12 @@ def test_repeated_save_times(mode):
     def run(ts):
         return jl.simulate(PENDULUM, jnp.array([0.3]), jnp.zeros(1), ts, args={"g": 9.81}).q
 
-    with raises(mode, ValueError, r"strictly increasing and finite; ts\[1\] = 0.5 is followed by "
-                                  r"ts\[2\] = 0.5"):
+    with raises(
+        mode,
+        ValueError,
+        r"strictly increasing and finite; ts\[1\] = 0.5 is followed by "
+        r"ts\[2\] = 0.5",
+    ):
         run_in(mode, run, jnp.array([0.0, 0.5, 0.5, 1.0]))
 
 

@@ -34,8 +34,9 @@ def observe_bob(args, q0=Q0, ts=TS):
 
 def test_pendulum_g_and_l_from_noise_free_bob_positions():
     experiment = jl.Experiment(TS, observe_bob(TRUE), Q0, QD0)
-    result = jl.fit(PENDULUM, START, experiment, observe=bob,
-                    transforms={"g": jl.Positive(), "l": jl.Positive()})
+    result = jl.fit(
+        PENDULUM, START, experiment, observe=bob, transforms={"g": jl.Positive(), "l": jl.Positive()}
+    )
     assert result.converged
     # Noise-free data and a simulation at rtol 1e-10: recovery limited by the integrator only.
     for name in TRUE:
@@ -120,24 +121,32 @@ def test_hoop_radius_from_cartesian_positions_through_the_kkt_solve():
     observed = jax.vmap(lambda q: cartesian(q, None))(traj.q)
     # The starting guess R = 1.0 is inconsistent with q0: the fit projects each initial state
     # onto the manifold of the current parameters (jl.consistent_initial_state).
-    result = jl.fit(system, {"R": 1.0}, jl.Experiment(TS, observed, q0, qd0), observe=cartesian,
-                    args={"g": 9.81})
+    result = jl.fit(
+        system, {"R": 1.0}, jl.Experiment(TS, observed, q0, qd0), observe=cartesian, args={"g": 9.81}
+    )
     assert abs(result.params["R"] / 1.3 - 1) < 1e-6
 
 
 def test_damping_coefficient_of_an_oscillator():
-    system = jl.System(lambda q, qd, args: 0.5 * qd[0] ** 2 - 2.0 * q[0] ** 2,
-                       dissipation=lambda q, qd, args: 0.5 * args["c"] * qd[0] ** 2)
+    system = jl.System(
+        lambda q, qd, args: 0.5 * qd[0] ** 2 - 2.0 * q[0] ** 2,
+        dissipation=lambda q, qd, args: 0.5 * args["c"] * qd[0] ** 2,
+    )
     traj = jl.simulate(system, jnp.array([1.0]), jnp.zeros(1), TS, args={"c": 0.35})
-    result = jl.fit(system, {"c": 0.1}, jl.Experiment(TS, traj.q, jnp.array([1.0]), jnp.zeros(1)),
-                    transforms={"c": jl.Positive()})
+    result = jl.fit(
+        system,
+        {"c": 0.1},
+        jl.Experiment(TS, traj.q, jnp.array([1.0]), jnp.zeros(1)),
+        transforms={"c": jl.Positive()},
+    )
     assert abs(result.params["c"] / 0.35 - 1) < 1e-6
 
 
 def test_optax_path_decreases_the_loss():
     experiment = jl.Experiment(TS, observe_bob(TRUE), Q0, QD0)
-    result = jl.fit(PENDULUM, START, experiment, observe=bob, method=optax.adam(0.05),
-                    max_steps=60, progress=True)
+    result = jl.fit(
+        PENDULUM, START, experiment, observe=bob, method=optax.adam(0.05), max_steps=60, progress=True
+    )
     assert len(result.loss_history) == 61
     assert result.loss_history[-1] < 0.05 * result.loss_history[0]
 
@@ -150,8 +159,13 @@ def test_loss_gradient_matches_central_differences():
 
     grad = jax.grad(loss, argnums=(0, 1))(*START.values())
     forward = jax.jacfwd(
-        lambda x: jl.least_squares_loss(PENDULUM, {"g": x[0], "l": x[1]}, experiment, observe=bob,
-                                        simulate_kwargs={"adjoint": diffrax.ForwardMode()})
+        lambda x: jl.least_squares_loss(
+            PENDULUM,
+            {"g": x[0], "l": x[1]},
+            experiment,
+            observe=bob,
+            simulate_kwargs={"adjoint": diffrax.ForwardMode()},
+        )
     )(jnp.array(list(START.values())))
     h = 1e-5
     for i, name in enumerate(START):
@@ -180,17 +194,24 @@ def test_bad_input():
     with pytest.raises(ValueError, match="observation function returns shape"):
         jl.fit(PENDULUM, START, jl.Experiment(TS, observed, Q0, QD0))  # observes q: shape (1,)
     with pytest.raises(ValueError, match="All observations are NaN"):
-        jl.fit(PENDULUM, START, jl.Experiment(TS, jnp.full_like(observed, jnp.nan), Q0, QD0),
-               observe=bob)
+        jl.fit(PENDULUM, START, jl.Experiment(TS, jnp.full_like(observed, jnp.nan), Q0, QD0), observe=bob)
     with pytest.raises(ValueError, match="same shapes"):
-        jl.fit(PENDULUM, START, [jl.Experiment(TS, observed, Q0, QD0),
-                                 jl.Experiment(TS[:10], observed[:10], Q0, QD0)], observe=bob)
+        jl.fit(
+            PENDULUM,
+            START,
+            [jl.Experiment(TS, observed, Q0, QD0), jl.Experiment(TS[:10], observed[:10], Q0, QD0)],
+            observe=bob,
+        )
     with pytest.raises(ValueError, match="shooting_segments"):
-        jl.fit(PENDULUM, START, jl.Experiment(TS, observed, Q0, QD0), observe=bob,
-               shooting_segments=7)
+        jl.fit(PENDULUM, START, jl.Experiment(TS, observed, Q0, QD0), observe=bob, shooting_segments=7)
     with pytest.raises(ValueError, match="transforms"):
-        jl.fit(PENDULUM, START, jl.Experiment(TS, observed, Q0, QD0), observe=bob,
-               transforms={"m": jl.Positive()})
+        jl.fit(
+            PENDULUM,
+            START,
+            jl.Experiment(TS, observed, Q0, QD0),
+            observe=bob,
+            transforms={"m": jl.Positive()},
+        )
 
 
 def test_failures_during_a_fit_are_raised_from_the_host():
@@ -199,16 +220,26 @@ def test_failures_during_a_fit_are_raised_from_the_host():
     being tried, and an initial state the projection cannot bring onto the constraints."""
     observed = observe_bob(TRUE)
     with pytest.raises(jl.SimulationError, match=r"jl.fit, experiment 1, at parameters .*max_steps"):
-        jl.fit(PENDULUM, START, [jl.Experiment(TS[:5], observed[:5], Q0, QD0),
-                                 jl.Experiment(TS[:5] * 20, observed[:5], Q0, QD0)],
-               observe=bob, simulate_kwargs={"max_steps": 64})
+        jl.fit(
+            PENDULUM,
+            START,
+            [jl.Experiment(TS[:5], observed[:5], Q0, QD0), jl.Experiment(TS[:5] * 20, observed[:5], Q0, QD0)],
+            observe=bob,
+            simulate_kwargs={"max_steps": 64},
+        )
     # A bead that should sit at distance l from the pivot, but the constraint |x| = −l has no
     # solution for l > 0: the projection of the initial state fails.
-    bead = jl.System(lambda q, qd, args: 0.5 * jnp.sum(qd**2) - args["g"] * q[1],
-                     holonomic=lambda q, args: jnp.array([jnp.sum(q**2) + args["l"] ** 2]))
+    bead = jl.System(
+        lambda q, qd, args: 0.5 * jnp.sum(qd**2) - args["g"] * q[1],
+        holonomic=lambda q, args: jnp.array([jnp.sum(q**2) + args["l"] ** 2]),
+    )
     with pytest.raises(ValueError, match="jl.fit, experiment 0: consistent_initial_state"):
-        jl.fit(bead, START, jl.Experiment(TS[:5], observed[:5], jnp.array([0.5, -0.5]),
-                                          jnp.zeros(2)), observe=lambda q, qd: q)
+        jl.fit(
+            bead,
+            START,
+            jl.Experiment(TS[:5], observed[:5], jnp.array([0.5, -0.5]), jnp.zeros(2)),
+            observe=lambda q, qd: q,
+        )
 
 
 def test_one_experiment_path_equals_the_batched_one():

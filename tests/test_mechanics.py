@@ -33,10 +33,12 @@ def hand_double_pendulum(q, qd, args):
     c = jnp.cos(t1 - t2)
     s = jnp.sin(t1 - t2)
     mass = jnp.array([[(m1 + m2) * l1**2, m2 * l1 * l2 * c], [m2 * l1 * l2 * c, m2 * l2**2]])
-    force = jnp.array([
-        -m2 * l1 * l2 * s * w2**2 - (m1 + m2) * G * l1 * jnp.sin(t1),
-        m2 * l1 * l2 * s * w1**2 - m2 * G * l2 * jnp.sin(t2),
-    ])
+    force = jnp.array(
+        [
+            -m2 * l1 * l2 * s * w2**2 - (m1 + m2) * G * l1 * jnp.sin(t1),
+            m2 * l1 * l2 * s * w1**2 - m2 * G * l2 * jnp.sin(t2),
+        ]
+    )
     return mass, force
 
 
@@ -58,9 +60,7 @@ def test_double_pendulum_mass_matrix_and_forces(q, qd):
     # For L = T − V with T quadratic in q̇, h = T + V = q̇ᵀMq̇ − L + ... = 2T − (T − V).
     kinetic = 0.5 * qd @ mass @ qd
     lagrangian = double_pendulum(q, qd, ARGS)
-    np.testing.assert_allclose(
-        SYSTEM.energy(q, qd, args=ARGS), 2 * kinetic - lagrangian, atol=1e-11
-    )
+    np.testing.assert_allclose(SYSTEM.energy(q, qd, args=ARGS), 2 * kinetic - lagrangian, atol=1e-11)
 
 
 @settings(max_examples=25, deadline=None)
@@ -89,19 +89,19 @@ def test_explicit_time_derivative_term():
     """L = ½ m (q̇ − v(t))², v(t) = sin t: F must contain −∂²L/∂q̇∂t = m cos t."""
     system = jl.System(lambda q, qd, t: 0.5 * 2.0 * (qd[0] - jnp.sin(t)) ** 2)
     t = 0.7
-    np.testing.assert_allclose(system.generalized_forces(jnp.zeros(1), jnp.ones(1), t),
-                               [2.0 * np.cos(t)], rtol=1e-14)
-    np.testing.assert_allclose(system.accelerations(jnp.zeros(1), jnp.ones(1), t), [np.cos(t)],
-                               rtol=1e-14)
+    np.testing.assert_allclose(
+        system.generalized_forces(jnp.zeros(1), jnp.ones(1), t), [2.0 * np.cos(t)], rtol=1e-14
+    )
+    np.testing.assert_allclose(system.accelerations(jnp.zeros(1), jnp.ones(1), t), [np.cos(t)], rtol=1e-14)
 
 
 def test_mechanics_functions_compose_with_jit_vmap_grad():
     qs = jnp.array([[0.1, 0.2], [1.0, -0.5], [2.0, 3.0]])
     qds = jnp.ones_like(qs)
     energies = jax.jit(jax.vmap(lambda q, v: SYSTEM.energy(q, v, args=ARGS)))(qs, qds)
-    np.testing.assert_allclose(energies, [SYSTEM.energy(q, v, args=ARGS) for q, v in zip(qs, qds)],
-                               rtol=1e-14)
+    np.testing.assert_allclose(
+        energies, [SYSTEM.energy(q, v, args=ARGS) for q, v in zip(qs, qds)], rtol=1e-14
+    )
     # ∂h/∂q̇ = M q̇ for a natural Lagrangian.
     grad_h = jax.grad(lambda v: SYSTEM.energy(qs[1], v, args=ARGS))(qds[1])
-    np.testing.assert_allclose(grad_h, SYSTEM.mass_matrix(qs[1], qds[1], args=ARGS) @ qds[1],
-                               rtol=1e-12)
+    np.testing.assert_allclose(grad_h, SYSTEM.mass_matrix(qs[1], qds[1], args=ARGS) @ qds[1], rtol=1e-12)

@@ -115,10 +115,15 @@ def _run_processes(tmp_path):
     env["PYTHONPATH"] = os.pathsep.join([source] + [p for p in [env.get("PYTHONPATH")] if p])
     port = _free_loopback_port()
     logs = [open(tmp_path / f"process{i}.log", "w+") for i in range(PROCESSES)]
-    processes = [subprocess.Popen([sys.executable, "-c", _WORKER, str(i), str(port),
-                                   str(tmp_path / f"process{i}.npz")],
-                                  env=env, stdout=logs[i], stderr=subprocess.STDOUT)
-                 for i in range(PROCESSES)]
+    processes = [
+        subprocess.Popen(
+            [sys.executable, "-c", _WORKER, str(i), str(port), str(tmp_path / f"process{i}.npz")],
+            env=env,
+            stdout=logs[i],
+            stderr=subprocess.STDOUT,
+        )
+        for i in range(PROCESSES)
+    ]
     start = time.monotonic()
     try:
         # When one process fails the other may wait for it forever at a collective: stop it.
@@ -138,8 +143,10 @@ def _run_processes(tmp_path):
         log.seek(0)
         outputs.append(log.read())
         log.close()
-    report = "\n".join(f"--- process {i} (exit {p.returncode}):\n{out[-4000:]}"
-                       for i, (p, out) in enumerate(zip(processes, outputs)))
+    report = "\n".join(
+        f"--- process {i} (exit {p.returncode}):\n{out[-4000:]}"
+        for i, (p, out) in enumerate(zip(processes, outputs))
+    )
     assert all(p.returncode == 0 for p in processes), report
     assert all(f"MULTIPROCESS-OK {i}" in out for i, out in enumerate(outputs)), report
     return [dict(np.load(tmp_path / f"process{i}.npz")) for i in range(PROCESSES)]
@@ -153,14 +160,14 @@ def test_two_processes_with_cpu_collectives_equal_the_single_process_batch(tmp_p
         rd, thd = qd
         return 0.5 * (rd**2 + r**2 * thd**2) - args["g"] * r * jnp.cos(th)
 
-    system = jl.System(lagrangian, holonomic=lambda q, args: jnp.array([q[0] - args["R"]]),
-                       unilateral=0)
+    system = jl.System(lagrangian, holonomic=lambda q, args: jnp.array([q[0] - args["R"]]), unilateral=0)
     ts = jnp.linspace(0.0, 1.6, 9)
     theta0 = jnp.linspace(0.2, 0.55, 8)
     q0 = jnp.stack([jnp.full_like(theta0, 2.0), theta0], axis=1)
     g = jnp.linspace(9.0, 10.0, 8)
-    single = jl.simulate_batch(system, q0, jnp.zeros(2), ts, args={"g": g, "R": 2.0},
-                               args_axes={"g": 0, "R": None}, max_segments=3)
+    single = jl.simulate_batch(
+        system, q0, jnp.zeros(2), ts, args={"g": g, "R": 2.0}, args_axes={"g": 0, "R": None}, max_segments=3
+    )
     expected = {"q": single.q, "qd": single.qd, "time": single.events.time, "kind": single.events.kind}
     # Each member lets go of the sphere where cos θ = (2/3) cos θ0, whatever g.
     assert np.all(np.asarray(single.events.kind[:, 0]) == 1)
@@ -174,5 +181,6 @@ def test_two_processes_with_cpu_collectives_equal_the_single_process_batch(tmp_p
                 if name == "kind":
                     np.testing.assert_array_equal(got, value[:members], err_msg=f"{process} {way}")
                 else:  # same arithmetic on every device: agreement to round-off, inf where unused
-                    np.testing.assert_allclose(got, value[:members], rtol=0, atol=1e-12,
-                                               err_msg=f"process {process}, {way}, {name}")
+                    np.testing.assert_allclose(
+                        got, value[:members], rtol=0, atol=1e-12, err_msg=f"process {process}, {way}, {name}"
+                    )

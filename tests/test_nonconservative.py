@@ -153,9 +153,7 @@ def test_driven_oscillator_matches_closed_form(system, c):
     assert err_q <= 1e-8, err_q
     assert err_qd <= 1e-8, err_qd
     # Q(t) enters with a plus sign: input power is exactly q̇ F0 cos Ωt (round-off only).
-    np.testing.assert_allclose(
-        traj.input_power, traj.qd[:, 0] * F0 * jnp.cos(Omega * ts), rtol=0, atol=1e-13
-    )
+    np.testing.assert_allclose(traj.input_power, traj.qd[:, 0] * F0 * jnp.cos(Omega * ts), rtol=0, atol=1e-13)
 
 
 def test_driven_oscillator_at_resonance_grows_linearly():
@@ -224,18 +222,14 @@ def test_energy_balance(system, args):
 
     # (1) pointwise: d h/dt along (q̇, q̈, 1)
     def energy_rate(t, q, qd, qdd):
-        return jax.jvp(
-            lambda x, v, s: system.energy(x, v, s, args=traj.args), (q, qd, t), (qd, qdd, 1.0)
-        )[1]
+        return jax.jvp(lambda x, v, s: system.energy(x, v, s, args=traj.args), (q, qd, t), (qd, qdd, 1.0))[1]
 
     rate = jax.vmap(energy_rate)(traj.t, traj.q, traj.qd, traj.accelerations)
     scale = float(jnp.max(jnp.abs(net_power)))
     # Measured ≤ 2e-15 relative: identities in exact arithmetic, only round-off remains.
     np.testing.assert_allclose(rate, net_power, rtol=0, atol=1e-13 * scale)
     # Dissipated power of the quadratic R is 2R = c q̇² (independent of the library's formula).
-    np.testing.assert_allclose(
-        traj.dissipated_power, args["c"] * traj.qd[:, 0] ** 2, rtol=0, atol=1e-14
-    )
+    np.testing.assert_allclose(traj.dissipated_power, args["c"] * traj.qd[:, 0] ** 2, rtol=0, atol=1e-14)
 
     # (2) integrated
     work = float(jnp.sum(jnp.asarray(weights) * net_power[1:-1]))
@@ -461,8 +455,7 @@ def test_disk_on_incline_mixed_constraints_match_holonomic_version():
     )
     np.testing.assert_allclose(
         holo.multipliers,
-        jnp.broadcast_to(jnp.array([m * g * np.cos(alpha), -m * g * np.sin(alpha) / 3.0]),
-                         (ts.shape[0], 2)),
+        jnp.broadcast_to(jnp.array([m * g * np.cos(alpha), -m * g * np.sin(alpha) / 3.0]), (ts.shape[0], 2)),
         rtol=0,
         atol=1e-12,
     )
@@ -497,9 +490,7 @@ def test_rheonomic_velocity_constraint_with_damping():
     traj = jl.simulate(system, jnp.array([0.1]), jnp.array([V]), ts, args=args)
     # x: global error over ~1.3 periods, measured 1.5e-10; q̇ is projected onto the prescribed
     # value after every step, measured 0, so 1e-12.
-    np.testing.assert_allclose(
-        traj.q[:, 0], 0.1 + V / Omega * jnp.sin(Omega * ts), rtol=0, atol=1e-8
-    )
+    np.testing.assert_allclose(traj.q[:, 0], 0.1 + V / Omega * jnp.sin(Omega * ts), rtol=0, atol=1e-8)
     np.testing.assert_allclose(traj.qd[:, 0], V * jnp.cos(Omega * ts), rtol=0, atol=1e-12)
     mu = traj.velocity_multipliers[:, 0]
     expected_mu = -m * V * Omega * jnp.sin(Omega * ts) + c * V * jnp.cos(Omega * ts)
@@ -516,8 +507,7 @@ def test_rheonomic_velocity_constraint_with_damping():
 def test_dissipation_must_be_scalar():
     bad = jl.System(oscillator_lagrangian, dissipation=lambda q, qd: 0.5 * qd**2)  # shape (1,)
     with pytest.raises(ValueError, match="dissipation function must return a scalar"):
-        jl.simulate(bad, jnp.array([1.0]), jnp.array([0.0]), jnp.linspace(0, 1, 3),
-                    args={"m": 1.0, "k": 1.0})
+        jl.simulate(bad, jnp.array([1.0]), jnp.array([0.0]), jnp.linspace(0, 1, 3), args={"m": 1.0, "k": 1.0})
     with pytest.raises(ValueError, match="scalar"):
         bad.check(jnp.array([1.0]), jnp.array([0.0]), args={"m": 1.0, "k": 1.0})
 
@@ -535,8 +525,7 @@ def test_force_must_have_shape_of_q(force):
     bad = jl.System(oscillator_lagrangian, forces=force)
     message = r"force function must return generalized forces of shape \(1,\)"
     with pytest.raises(ValueError, match=message):
-        jl.simulate(bad, jnp.array([1.0]), jnp.array([0.0]), jnp.linspace(0, 1, 3),
-                    args={"m": 1.0, "k": 1.0})
+        jl.simulate(bad, jnp.array([1.0]), jnp.array([0.0]), jnp.linspace(0, 1, 3), args={"m": 1.0, "k": 1.0})
 
 
 def test_velocity_constraint_must_be_vector():
@@ -571,8 +560,7 @@ GRAD_M, GRAD_K = 1.0, 4.0
 
 def _sim_loss(c, **kwargs):
     args = {"m": GRAD_M, "k": GRAD_K, "c": c}
-    traj = jl.simulate(DAMPED, jnp.array([GRAD_Q0]), jnp.array([GRAD_V0]), GRAD_TS, args=args,
-                       **kwargs)
+    traj = jl.simulate(DAMPED, jnp.array([GRAD_Q0]), jnp.array([GRAD_V0]), GRAD_TS, args=args, **kwargs)
     return jnp.sum(traj.q[:, 0] ** 2)
 
 

@@ -61,14 +61,19 @@ def _mass(q, args, state_dependent):
 def _lagrangian(q, qd, t, args, state_dependent):
     mass = _mass(q, args, state_dependent)
     coupling = args["C"] @ jnp.sin(q) * jnp.cos(args["w"] * t)
-    potential = (0.5 * q @ args["K"] @ q + args["p"] @ q**3
-                 + args["a"] @ jnp.cos(args["W"] @ q + args["phi"]) + args["e"] * t * q[0])
+    potential = (
+        0.5 * q @ args["K"] @ q
+        + args["p"] @ q**3
+        + args["a"] @ jnp.cos(args["W"] @ q + args["phi"])
+        + args["e"] * t * q[0]
+    )
     return 0.5 * qd @ mass @ qd + coupling @ qd - potential
 
 
 def _holonomic(q, t, args):
-    return (args["Rf"] @ q + args["Sf"] @ jnp.sin(q) + args["u"] * (q @ q)
-            + args["s"] * jnp.sin(args["wf"] * t))
+    return (
+        args["Rf"] @ q + args["Sf"] @ jnp.sin(q) + args["u"] * (q @ q) + args["s"] * jnp.sin(args["wf"] * t)
+    )
 
 
 def _velocity(q, qd, t, args):
@@ -83,6 +88,7 @@ def _redundant(q, t, args):
 
 def _functions(state_dependent, holonomic_rows, velocity_rows, redundant=False):
     """``(L, f or None, g or None)`` of one structure, as named functions of (q, [qd], t, args)."""
+
     def lagrangian(q, qd, t, args):
         return _lagrangian(q, qd, t, args, state_dependent)
 
@@ -94,7 +100,7 @@ def random_args(rng, holonomic_rows, velocity_rows):
     factor = rng.uniform(-1.0, 1.0, (N, N))
     stiffness = rng.uniform(-1.0, 1.0, (N, N))
     return {
-        "A": factor @ factor.T + 10.0 ** rng.uniform(-3.0, 0.0) * np.eye(N),   # κ(A) up to ~10³
+        "A": factor @ factor.T + 10.0 ** rng.uniform(-3.0, 0.0) * np.eye(N),  # κ(A) up to ~10³
         "B": rng.uniform(0.0, 2.0, N),
         "C": rng.uniform(-1.0, 1.0, (N, N)),
         "w": rng.uniform(0.5, 3.0),
@@ -116,8 +122,7 @@ def random_args(rng, holonomic_rows, velocity_rows):
     }
 
 
-def _reference_residuals(lagrangian, holonomic, velocity, q, qd, t, args, qdd, lam, mu,
-                         redundant=False):
+def _reference_residuals(lagrangian, holonomic, velocity, q, qd, t, args, qdd, lam, mu, redundant=False):
     """The equations of motion evaluated here, by plain JAX, at jaxlag's (q̈, λ, μ).
 
     ``lagrangian(q, qd, t, args)``, ``holonomic(q, t, args)`` and ``velocity(q, qd, t, args)``
@@ -128,17 +133,20 @@ def _reference_residuals(lagrangian, holonomic, velocity, q, qd, t, args, qdd, l
     """
     momenta = jax.grad(lagrangian, argnums=1)
     mass = jax.hessian(lagrangian, argnums=1)(q, qd, t, args)
-    force_terms = [jax.grad(lagrangian, argnums=0)(q, qd, t, args),
-                   -jax.jacfwd(momenta, argnums=0)(q, qd, t, args) @ qd,
-                   -jax.jacfwd(momenta, argnums=2)(q, qd, t, args)]
+    force_terms = [
+        jax.grad(lagrangian, argnums=0)(q, qd, t, args),
+        -jax.jacfwd(momenta, argnums=0)(q, qd, t, args) @ qd,
+        -jax.jacfwd(momenta, argnums=2)(q, qd, t, args),
+    ]
     force = sum(force_terms)
 
     rows, constraint_residuals, curvature_terms = [], [], []
     if holonomic is not None:
+
         def along_motion(s):  # f on the curve q + s q̇ + ½ s² q̈: its 2nd derivative is J q̈ + γ
             return holonomic(q + s * qd + 0.5 * s**2 * qdd, t + s, args)
 
-        def along_free(s):    # f along q + s q̇ alone: its 2nd derivative is γ
+        def along_free(s):  # f along q + s q̇ alone: its 2nd derivative is γ
             return holonomic(q + s * qd, t + s, args)
 
         def second_derivative(path):
@@ -151,11 +159,11 @@ def _reference_residuals(lagrangian, holonomic, velocity, q, qd, t, args, qdd, l
     if velocity is not None:
         a_matrix = jax.jacfwd(velocity, argnums=1)(q, qd, t, args)
         rows.append(a_matrix)
-        constraint_residuals.append(jax.jvp(lambda s: velocity(q + s * qd, qd + s * qdd, t + s, args),
-                                            (0.0,), (1.0,))[1])
+        constraint_residuals.append(
+            jax.jvp(lambda s: velocity(q + s * qd, qd + s * qdd, t + s, args), (0.0,), (1.0,))[1]
+        )
         # A q̈ + (∂g/∂q) q̇ + ∂g/∂t: the last two terms' size
-        curvature_terms.append(jax.jvp(lambda s: velocity(q + s * qd, qd, t + s, args),
-                                       (0.0,), (1.0,))[1])
+        curvature_terms.append(jax.jvp(lambda s: velocity(q + s * qd, qd, t + s, args), (0.0,), (1.0,))[1])
     multipliers = jnp.concatenate([lam, mu])
     if rows:
         constraint_rows = jnp.concatenate(rows, axis=0)
@@ -173,7 +181,7 @@ def _reference_residuals(lagrangian, holonomic, velocity, q, qd, t, args, qdd, l
 
     singular_values = jnp.linalg.svd(mass, compute_uv=False)
     condition = singular_values[0] / singular_values[-1]
-    kkt_norm = singular_values[0] + 2 * row_norm                      # ≥ ‖[[M, Gᵀ], [G, 0]]‖
+    kkt_norm = singular_values[0] + 2 * row_norm  # ≥ ‖[[M, Gᵀ], [G, 0]]‖
     solution = jnp.linalg.norm(qdd) + jnp.linalg.norm(multipliers)
     terms = sum(jnp.linalg.norm(term) for term in force_terms) + curvature
     tolerance = TOLERANCE_FACTOR * EPS * condition * (kkt_norm * solution + terms)
@@ -191,9 +199,15 @@ def system_of(state_dependent, holonomic_rows, velocity_rows, redundant=False, l
     key = (state_dependent, holonomic_rows, velocity_rows, redundant, least_squares)
     if key not in _SYSTEMS:
         functions = _functions(*key[:4])
-        _SYSTEMS[key] = (jl.System(functions[0], holonomic=functions[1],
-                                   velocity_constraints=functions[2], least_squares=least_squares),
-                         functions)
+        _SYSTEMS[key] = (
+            jl.System(
+                functions[0],
+                holonomic=functions[1],
+                velocity_constraints=functions[2],
+                least_squares=least_squares,
+            ),
+            functions,
+        )
     return _SYSTEMS[key]
 
 
@@ -210,25 +224,32 @@ def evaluator(state_dependent, holonomic_rows, velocity_rows, redundant=False):
             qdd = system.accelerations(q, qd, t, args)
             lam = system.multipliers(q, qd, t, args)
             mu = system.velocity_multipliers(q, qd, t, args)
-            return (qdd, lam, mu) + _reference_residuals(*functions, q, qd, t, args, qdd, lam, mu,
-                                                         redundant=redundant)
+            return (qdd, lam, mu) + _reference_residuals(
+                *functions, q, qd, t, args, qdd, lam, mu, redundant=redundant
+            )
 
         _EVALUATORS[key] = jax.jit(jax.vmap(one, in_axes=(0, 0, 0, None)))
     return _EVALUATORS[key]
 
 
 @settings(max_examples=40, deadline=None)
-@given(state_dependent=st.booleans(), holonomic_rows=st.integers(0, 2),
-       velocity_rows=st.integers(0, 1), seed=st.integers(0, 2**32 - 1))
-def test_accelerations_and_multipliers_solve_the_constrained_equations(state_dependent, holonomic_rows,
-                                                                      velocity_rows, seed):
+@given(
+    state_dependent=st.booleans(),
+    holonomic_rows=st.integers(0, 2),
+    velocity_rows=st.integers(0, 1),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_accelerations_and_multipliers_solve_the_constrained_equations(
+    state_dependent, holonomic_rows, velocity_rows, seed
+):
     rng = np.random.default_rng(seed)
     args = random_args(rng, holonomic_rows, velocity_rows)
     q = rng.uniform(-1.5, 1.5, (STATES_PER_EXAMPLE, N))
     qd = rng.uniform(-2.0, 2.0, (STATES_PER_EXAMPLE, N))
     t = rng.uniform(0.0, 5.0, STATES_PER_EXAMPLE)
-    qdd, lam, mu, dynamics, constraint, tolerance = evaluator(state_dependent, holonomic_rows,
-                                                              velocity_rows)(q, qd, t, args)
+    qdd, lam, mu, dynamics, constraint, tolerance = evaluator(state_dependent, holonomic_rows, velocity_rows)(
+        q, qd, t, args
+    )
     assert qdd.shape == (STATES_PER_EXAMPLE, N)
     assert lam.shape == (STATES_PER_EXAMPLE, holonomic_rows)
     assert mu.shape == (STATES_PER_EXAMPLE, velocity_rows)

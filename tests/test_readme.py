@@ -43,7 +43,7 @@ def python_blocks(text):
                 blocks.append((heading, len(blocks), start, "\n".join(body) + "\n"))
             language = None
         else:  # a fence indented inside a list item: its lines carry the same indentation
-            body.append(line[len(indent):] if line.startswith(indent) else line)
+            body.append(line[len(indent) :] if line.startswith(indent) else line)
     assert language is None, f"README.md: unclosed code fence opened at line {start - 1}"
     return blocks
 
@@ -73,12 +73,14 @@ def x64_off():
         jax.config.update("jax_enable_x64", previous)
 
 
-@pytest.mark.parametrize("heading, index, first_line, source", BLOCKS,
-                         ids=[_test_id(b[0], b[1]) for b in BLOCKS])
+@pytest.mark.parametrize(
+    "heading, index, first_line, source", BLOCKS, ids=[_test_id(b[0], b[1]) for b in BLOCKS]
+)
 def test_readme_block_runs(heading, index, first_line, source, x64_off):
     if "jax" in source:
         assert 'jax.config.update("jax_enable_x64", True)' in source, (
-            f"README.md line {first_line} ({heading!r}): the block uses JAX but does not enable x64 itself")
+            f"README.md line {first_line} ({heading!r}): the block uses JAX but does not enable x64 itself"
+        )
     # Line numbers in a traceback point into README.md.
     code = compile("\n" * (first_line - 1) + source, str(README), "exec")
     namespace = {"__name__": f"readme_block_{index}"}

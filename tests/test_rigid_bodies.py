@@ -34,6 +34,7 @@ FAST = {"check_initial_state": False, "projection": None}
 
 def euler_to_quaternion_state(angles, rates):
     """Quaternion and its rate for the ``"zxz"`` state (angles, rates): one jvp."""
+
     def to_quaternion(a):
         return rotations.quaternion_from_matrix(rotations.euler_matrix(a, "zxz"))
 
@@ -64,15 +65,20 @@ def test_euler_matrices_are_rotations_and_compose(angles, sequence):
 
 def test_elementary_rotations_and_yaw_pitch_roll():
     # R_z(π/2) e_x = e_y (right-handed); yaw–pitch–roll is R_z(yaw) R_y(pitch) R_x(roll)
-    assert np.allclose(rotations.axis_rotation("z", np.pi / 2) @ jnp.array([1.0, 0, 0]), [0, 1, 0],
-                       atol=1e-15)
+    assert np.allclose(
+        rotations.axis_rotation("z", np.pi / 2) @ jnp.array([1.0, 0, 0]), [0, 1, 0], atol=1e-15
+    )
     y, p, r = 0.3, -0.2, 0.7
-    expected = (rotations.axis_rotation("z", y) @ rotations.axis_rotation("y", p)
-                @ rotations.axis_rotation("x", r))
+    expected = (
+        rotations.axis_rotation("z", y) @ rotations.axis_rotation("y", p) @ rotations.axis_rotation("x", r)
+    )
     assert np.allclose(rotations.euler_matrix(jnp.array([y, p, r]), "zyx"), expected, atol=1e-15)
     # Rodrigues about z equals the elementary rotation
-    assert np.allclose(rotations.axis_angle_matrix(jnp.array([0, 0, 2.0]), 0.4),
-                       rotations.axis_rotation("z", 0.4), atol=1e-15)
+    assert np.allclose(
+        rotations.axis_angle_matrix(jnp.array([0, 0, 2.0]), 0.4),
+        rotations.axis_rotation("z", 0.4),
+        atol=1e-15,
+    )
     assert np.allclose(rotations.unskew(rotations.skew(jnp.array([1.0, -2.0, 3.0]))), [1, -2, 3])
 
 
@@ -84,8 +90,9 @@ def test_rotation_errors_are_clear():
     with pytest.raises(ValueError, match="\\(w, x, y, z\\)"):
         rotations.quaternion_matrix(jnp.zeros(3))
     with pytest.raises(ValueError, match="frame"):
-        rotations.angular_velocity(lambda q: rotations.euler_matrix(q), jnp.zeros(3), jnp.zeros(3),
-                                   frame="inertial")
+        rotations.angular_velocity(
+            lambda q: rotations.euler_matrix(q), jnp.zeros(3), jnp.zeros(3), frame="inertial"
+        )
 
 
 def test_angular_velocity_of_euler_angles_closed_form():
@@ -94,8 +101,11 @@ def test_angular_velocity_of_euler_angles_closed_form():
     qd = jnp.array([0.7, -0.4, 2.5])
     ph, th, ps = q
     phd, thd, psd = qd
-    body = [phd * jnp.sin(th) * jnp.sin(ps) + thd * jnp.cos(ps),
-            phd * jnp.sin(th) * jnp.cos(ps) - thd * jnp.sin(ps), phd * jnp.cos(th) + psd]
+    body = [
+        phd * jnp.sin(th) * jnp.sin(ps) + thd * jnp.cos(ps),
+        phd * jnp.sin(th) * jnp.cos(ps) - thd * jnp.sin(ps),
+        phd * jnp.cos(th) + psd,
+    ]
 
     def orientation(x):
         return rotations.euler_matrix(x, "zxz")
@@ -128,8 +138,7 @@ def test_rotations_under_jit_vmap_grad():
     assert np.isclose(grad[0], -np.sin(0.4), atol=1e-14)
     # the derivative of ω wrt a rate is the matrix's column (ω is linear in q̇): finite difference
     q, qd = jnp.array([0.3, 0.8, -1.1]), jnp.array([0.7, -0.4, 2.5])
-    omega = jax.jit(lambda x, v: rotations.angular_velocity(
-        lambda y: rotations.euler_matrix(y), x, v)[2])
+    omega = jax.jit(lambda x, v: rotations.angular_velocity(lambda y: rotations.euler_matrix(y), x, v)[2])
     g = jax.grad(omega, argnums=0)(q, qd)
     h = 1e-6
     fd = [(omega(q + h * e, qd) - omega(q - h * e, qd)) / (2 * h) for e in jnp.eye(3)]
@@ -184,8 +193,7 @@ def test_rigid_body_on_a_turning_support_has_the_time_derivative_terms():
 @given(st.lists(st.floats(-2.0, 2.0), min_size=6, max_size=6))
 def test_force_at_point_is_jacobian_transpose(values):
     # Q = (∂x_p/∂q)ᵀ F: against the dense Jacobian, for random states and forces
-    body = coordinates.RigidBody3D(lambda q: (q[:3], rotations.euler_matrix(q[3:], "zxz")), 1.0,
-                                   jnp.ones(3))
+    body = coordinates.RigidBody3D(lambda q: (q[:3], rotations.euler_matrix(q[3:], "zxz")), 1.0, jnp.ones(3))
     q = jnp.asarray(values)
     point, force = jnp.array([0.3, -0.1, 0.2]), jnp.array(values[:3]) + 1.0
     jacobian = jax.jacfwd(lambda x: body.point_position(x, point))(q)
@@ -226,9 +234,9 @@ def test_heavy_top_steady_precession(top_euler):
     precession = (-b - np.sqrt(b * b - 4 * a * c)) / (2 * a)
     q0 = jnp.array([0.0, theta, 0.0])
     qd0 = jnp.array([precession, 0.0, omega3 - precession * np.cos(theta)])
-    ts = jnp.linspace(0.0, 1.0, 41)       # 41 saves in every heavy-top run: one compilation
+    ts = jnp.linspace(0.0, 1.0, 41)  # 41 saves in every heavy-top run: one compilation
     traj = jl.simulate(top_euler, q0, qd0, ts, args=TOP, **FAST)
-    assert np.max(np.abs(traj.q[:, 1] - theta)) < 1e-8          # no nutation
+    assert np.max(np.abs(traj.q[:, 1] - theta)) < 1e-8  # no nutation
     assert np.allclose(traj.q[:, 0], precession * ts, atol=1e-8)  # uniform precession
 
 
@@ -240,11 +248,11 @@ def test_heavy_top_conserved_quantities_and_forms_agree(top_euler, top_quaternio
     omega3 = euler.qd[:, 2] + euler.qd[:, 0] * jnp.cos(th)
     p_psi = TOP["I3"] * omega3
     p_phi = I1P * euler.qd[:, 0] * jnp.sin(th) ** 2 + TOP["I3"] * omega3 * jnp.cos(th)
-    assert np.allclose(euler.momenta[:, 2], p_psi, rtol=1e-12)   # the formulas are the momenta
+    assert np.allclose(euler.momenta[:, 2], p_psi, rtol=1e-12)  # the formulas are the momenta
     assert np.allclose(euler.momenta[:, 0], p_phi, rtol=1e-12)
     for series in (p_psi, p_phi, euler.energy):
         assert np.ptp(series) < 1e-8 * np.max(np.abs(series))
-    assert np.ptp(th) > 0.01                                      # it does nutate
+    assert np.ptp(th) > 0.01  # it does nutate
     # the quaternion form from the same initial state gives the same rotation matrices
     quaternion = jl.simulate(top_quaternion, *euler_to_quaternion_state(q0, qd0), ts, args=TOP, **FAST)
     r_quaternion = jax.vmap(rotations.quaternion_matrix)(quaternion.q)
@@ -260,22 +268,23 @@ def test_heavy_top_quaternion_passes_through_gimbal_lock(top_quaternion):
     theta, omega3 = 0.3, 30.0
     phid = TOP["I3"] * omega3 * (1 - np.cos(theta)) / (I1P * np.sin(theta) ** 2)
     q0, qd0 = jnp.array([0.0, theta, 0.0]), jnp.array([phid, -3.0, omega3 - phid * np.cos(theta)])
-    ts = jnp.linspace(0.0, 0.3, 41)                               # same shape: no recompilation
+    ts = jnp.linspace(0.0, 0.3, 41)  # same shape: no recompilation
     traj = jl.simulate(top_quaternion, *euler_to_quaternion_state(q0, qd0), ts, args=TOP, **FAST)
     axis = jax.vmap(rotations.quaternion_matrix)(traj.q)[:, :, 2]
     tilt = np.arccos(np.clip(np.asarray(axis[:, 2]), -1, 1))
-    assert tilt.min() < 0.01 and tilt[-1] > 0.1                  # through the vertical and beyond
+    assert tilt.min() < 0.01 and tilt[-1] > 0.1  # through the vertical and beyond
     # the horizontal projection of the axis reverses: it went over the top
     assert float(axis[0, :2] @ axis[-1, :2]) < 0
     assert np.ptp(traj.energy) < 1e-8 * np.max(np.abs(traj.energy))
     # L_z (about the tip) and the spin L·n are conserved (gravity's torque is horizontal, ⟂ n)
     rotation = jax.vmap(rotations.quaternion_matrix)(traj.q)
     omega = jax.vmap(lambda q, v: rotations.angular_velocity(rotations.quaternion_matrix, q, v))(
-        traj.q, traj.qd)
+        traj.q, traj.qd
+    )
     inertia_tip = jnp.array([I1P, I1P, TOP["I3"]])
     momentum = jnp.einsum("tij,tj->ti", rotation, inertia_tip * omega)
     assert np.ptp(momentum[:, 2]) < 1e-8 and np.ptp(TOP["I3"] * omega[:, 2]) < 1e-8
-    assert np.max(np.abs(traj.constraint_residuals[0])) < 1e-9    # index-1 drift, no projection
+    assert np.max(np.abs(traj.constraint_residuals[0])) < 1e-9  # index-1 drift, no projection
 
 
 def test_heavy_top_matrix_form_accelerations_match_euler(top_euler):
@@ -308,10 +317,11 @@ def test_torque_free_rotation_stability_from_linearize(free_euler, moments):
     a, s, b = moments
     spin = 1.3
     args = {"I1": a, "I2": s, "I3": b}
-    lin = analysis.linearize(free_euler, jnp.array([0.0, np.pi / 2, 0.0]),
-                             jnp.array([spin, 0.0, 0.0]), args=args)
+    lin = analysis.linearize(
+        free_euler, jnp.array([0.0, np.pi / 2, 0.0]), jnp.array([spin, 0.0, 0.0]), args=args
+    )
     radicand = (s - a) * (s - b) / (a * b)
-    if s == 3.0:                                                  # intermediate: unstable
+    if s == 3.0:  # intermediate: unstable
         assert lin.stability() == "unstable"
         assert np.isclose(float(lin.growth_rate), spin * np.sqrt(-radicand), rtol=1e-10)
     else:
@@ -325,13 +335,14 @@ def test_torque_free_body_conserves_angular_momentum_and_energy():
     system = systems.torque_free_body("quaternion")
     args = {"I1": 2.0, "I2": 3.0, "I3": 4.0}
     q0 = rotations.quaternion_from_matrix(rotations.euler_matrix(jnp.array([0.3, 1.0, -0.4])))
-    omega0 = jnp.array([0.4, 2.0, 0.3])                           # near the unstable axis
+    omega0 = jnp.array([0.4, 2.0, 0.3])  # near the unstable axis
     # q̇ = ½ q ⊗ (0, ω_body)
     w, v = q0[0], q0[1:]
     qd0 = 0.5 * jnp.concatenate([-(v @ omega0)[None], w * omega0 + jnp.cross(v, omega0)])
     traj = jl.simulate(system, q0, qd0, jnp.linspace(0.0, 12.0, 61), args=args, **FAST)
     omega = jax.vmap(lambda q, qd: rotations.angular_velocity(rotations.quaternion_matrix, q, qd))(
-        traj.q, traj.qd)
+        traj.q, traj.qd
+    )
     assert np.allclose(omega[0], omega0, atol=1e-12)
     moments = jnp.array([2.0, 3.0, 4.0])
     world = jnp.einsum("tij,tj->ti", jax.vmap(rotations.quaternion_matrix)(traj.q), moments * omega)
@@ -339,7 +350,7 @@ def test_torque_free_body_conserves_angular_momentum_and_energy():
     energy = 0.5 * jnp.sum(moments * omega**2, axis=1)
     assert np.allclose(traj.energy, energy, rtol=1e-12)
     assert np.ptp(energy) < 1e-8 * energy[0]
-    assert np.ptp(omega[:, 1]) > 1.0                              # the intermediate axis flips
+    assert np.ptp(omega[:, 1]) > 1.0  # the intermediate axis flips
 
 
 # ----------------------------------------------------------------------------- loads
@@ -348,8 +359,9 @@ def _top_body():
         rotation = rotations.euler_matrix(q, "zxz")
         return rotation @ jnp.array([0.0, 0.0, args["l"]]), rotation
 
-    return coordinates.RigidBody3D(pose, mass=lambda a: a["m"],
-                                   inertia=lambda a: jnp.stack([a["I1"], a["I1"], a["I3"]]))
+    return coordinates.RigidBody3D(
+        pose, mass=lambda a: a["m"], inertia=lambda a: jnp.stack([a["I1"], a["I1"], a["I3"]])
+    )
 
 
 def test_torque_generalized_forces_by_hand():
@@ -365,8 +377,7 @@ def test_torque_generalized_forces_by_hand():
     assert np.allclose(forces(q, qd, 0.0, args), expected, atol=1e-15)
     # time-dependent actuator: τ(t) = sin(t) e_z
     motor = loads.generalized_forces(loads.Torque(body, lambda q, qd, t: jnp.array([0, 0, jnp.sin(t)])))
-    assert np.allclose(motor(q, qd, 0.7, args), np.sin(0.7) * np.array([1, 0, np.cos(q[1])]),
-                       atol=1e-15)
+    assert np.allclose(motor(q, qd, 0.7, args), np.sin(0.7) * np.array([1, 0, np.cos(q[1])]), atol=1e-15)
 
 
 def test_force_at_point_equals_potential_and_dissipation():
@@ -386,7 +397,8 @@ def test_force_at_point_equals_potential_and_dissipation():
     weight = loads.Force((body, jnp.zeros(3)), lambda q, qd, args: jnp.array([0, 0, -args["m"] * args["g"]]))
     with_loads = jl.System(
         coordinates.lagrangian_from_positions(None, bodies=[body]),
-        forces=loads.generalized_forces(loads.Force(tip, spring), loads.Force(tip, damper), weight))
+        forces=loads.generalized_forces(loads.Force(tip, spring), loads.Force(tip, damper), weight),
+    )
 
     def potential(q, args):
         stretch = body.point_position(q, point, 0.0, args) - anchor
@@ -397,20 +409,29 @@ def test_force_at_point_equals_potential_and_dissipation():
         return 0.5 * args["c"] * v @ v
 
     by_potential = jl.System(
-        coordinates.lagrangian_from_positions(None, potential=potential, gravity=lambda a: a["g"],
-                                              bodies=[body]), dissipation=dissipation)
+        coordinates.lagrangian_from_positions(
+            None, potential=potential, gravity=lambda a: a["g"], bodies=[body]
+        ),
+        dissipation=dissipation,
+    )
     rng = np.random.default_rng(0)
     for _ in range(4):
         q, qd = jnp.asarray(rng.uniform(0.3, 1.2, 3)), jnp.asarray(rng.normal(size=3))
-        assert np.allclose(with_loads.accelerations(q, qd, args=args),
-                           by_potential.accelerations(q, qd, args=args), rtol=1e-12, atol=1e-12)
+        assert np.allclose(
+            with_loads.accelerations(q, qd, args=args),
+            by_potential.accelerations(q, qd, args=args),
+            rtol=1e-12,
+            atol=1e-12,
+        )
     # equal accelerations at every state: the same vector field, hence the same motion (a
     # simulation of each would only re-test the integrator, at two more compilations)
-    assert np.allclose(with_loads.input_power(q, qd, args=args),
-                       -by_potential.dissipated_power(q, qd, args=args)
-                       + qd @ jax.grad(lambda x: -potential(x, args))(q)
-                       - args["m"] * args["g"] * jax.jvp(
-                           lambda x: body.position(x, 0.0, args)[0][2], (q,), (qd,))[1], rtol=1e-12)
+    assert np.allclose(
+        with_loads.input_power(q, qd, args=args),
+        -by_potential.dissipated_power(q, qd, args=args)
+        + qd @ jax.grad(lambda x: -potential(x, args))(q)
+        - args["m"] * args["g"] * jax.jvp(lambda x: body.position(x, 0.0, args)[0][2], (q,), (qd,))[1],
+        rtol=1e-12,
+    )
 
 
 def test_force_on_planar_body_and_position_map():
@@ -425,7 +446,8 @@ def test_force_on_planar_body_and_position_map():
     push = jnp.array([2.0, 0.0])
     on_body = loads.generalized_forces(loads.Force((rod, jnp.array([0.0, -0.5 * length])), push))
     on_map = loads.generalized_forces(
-        loads.Force(lambda q: length * jnp.stack([jnp.sin(q[0]), -jnp.cos(q[0])]), push))
+        loads.Force(lambda q: length * jnp.stack([jnp.sin(q[0]), -jnp.cos(q[0])]), push)
+    )
     q, qd = jnp.array([0.4]), jnp.array([1.0])
     assert np.allclose(on_body(q, qd), 2.0 * length * np.cos(0.4), atol=1e-15)
     assert np.allclose(on_map(q, qd), on_body(q, qd), atol=1e-15)
@@ -443,7 +465,8 @@ def test_loads_under_jit_vmap_grad():
     point = jnp.array([0.05, 0.0, 0.3])
     forces = loads.generalized_forces(
         loads.Force((body, point), lambda q, qd, args: args["k"] * jnp.array([1.0, 0.0, 0.0])),
-        loads.Torque(body, jnp.array([0.0, 0.0, 0.2])))
+        loads.Torque(body, jnp.array([0.0, 0.0, 0.2])),
+    )
     qs = jnp.array([[0.1, 0.5, 0.2], [0.3, 0.9, -0.4]])
     out = jax.jit(jax.vmap(lambda q: forces(q, jnp.zeros(3), 0.0, {**args, "k": 2.0})))(qs)
     assert out.shape == (2, 3)
@@ -466,14 +489,15 @@ def test_rolling_disk_steady_circle_no_slip_and_friction():
     big_a, big_c = 0.25 * m * radius**2, 0.5 * m * radius**2
     theta, omega = 1.2, 2.0
     omega_n = (big_a * omega**2 * np.sin(theta) * np.cos(theta) - m * g * radius * np.cos(theta)) / (
-        (big_c + m * radius**2) * omega * np.sin(theta))
+        (big_c + m * radius**2) * omega * np.sin(theta)
+    )
     spin = omega_n - omega * np.cos(theta)
     # φ = ψ = 0: axis n = (0, −sin θ, cos θ), centre at height R sin θ moving with −R ω_n e_x
     q0 = jnp.array([0.0, 0.0, radius * np.sin(theta), 0.0, theta, 0.0])
     qd0 = jnp.array([-radius * omega_n, 0.0, 0.0, omega, 0.0, spin])
     ts = jnp.linspace(0.0, 1.5, 16)
     traj = jl.simulate(system, q0, qd0, ts, args=DISK, check_initial_state=False)
-    assert np.max(np.abs(traj.q[:, 4] - theta)) < 1e-8                  # constant lean
+    assert np.max(np.abs(traj.q[:, 4] - theta)) < 1e-8  # constant lean
     assert np.allclose(traj.qd[:, 3], omega, atol=1e-8) and np.allclose(traj.qd[:, 5], spin, atol=1e-8)
     # the contact point runs on a circle of radius R s/Ω about O = P + e_z × V_P/Ω, V_P = −R s e_x
     disk = coordinates.RigidBody3D(lambda q: (q[:3], rotations.euler_matrix(q[3:6])), m, jnp.ones(3))
@@ -484,9 +508,15 @@ def test_rolling_disk_steady_circle_no_slip_and_friction():
     assert np.max(np.abs(points[:, 2])) < 1e-12
     # no slip at round-off (projected each step)
     # (the saved-state quantities in one compiled function: fewer compilations than traj.<name>)
-    residuals, normal, friction = jax.jit(jax.vmap(lambda x, v: (
-        system.constraint_residuals(x, v, args=DISK), system.multipliers(x, v, args=DISK),
-        system.velocity_multipliers(x, v, args=DISK))))(traj.q, traj.qd)
+    residuals, normal, friction = jax.jit(
+        jax.vmap(
+            lambda x, v: (
+                system.constraint_residuals(x, v, args=DISK),
+                system.multipliers(x, v, args=DISK),
+                system.velocity_multipliers(x, v, args=DISK),
+            )
+        )
+    )(traj.q, traj.qd)
     f, f_dot, slip = residuals
     assert np.max(np.abs(slip)) < 1e-13 and np.max(np.abs(f)) < 1e-13
     # friction = centripetal force of the centre, m Ω e_z × v; the normal force = m g
@@ -504,7 +534,7 @@ def test_ball_on_turntable_circles_at_two_sevenths():
     # rolling at t=0: v0 + ω × (−R e_z) = Ω e_z × x0, i.e. (−R ω_y, R ω_x) = table − v0
     omega = jnp.array([(table[1] - v0[1]) / args["R"], -(table[0] - v0[0]) / args["R"], 0.7])
     q0 = jnp.array([x0[0], x0[1], 1.0, 0.0, 0.0, 0.0])
-    qd0 = jnp.concatenate([v0, 0.5 * jnp.concatenate([jnp.zeros(1), omega])])   # q̇ = ½ (0, ω) at q = 1
+    qd0 = jnp.concatenate([v0, 0.5 * jnp.concatenate([jnp.zeros(1), omega])])  # q̇ = ½ (0, ω) at q = 1
     ts = jnp.linspace(0.0, 2.0, 11)
     traj = jl.simulate(system, q0, qd0, ts, args=args, **FAST)
     rate = args["k"] * args["Omega"] / (1 + args["k"])
@@ -514,11 +544,12 @@ def test_ball_on_turntable_circles_at_two_sevenths():
     rel = x0 - centre
     expected = centre + jnp.stack([c * rel[0] - s * rel[1], s * rel[0] + c * rel[1]], axis=1)
     assert np.max(np.abs(traj.q[:, :2] - expected)) < 1e-8
-    assert np.max(np.abs(traj.constraint_residuals[2])) < 1e-9     # index-1 drift, no projection
+    assert np.max(np.abs(traj.constraint_residuals[2])) < 1e-9  # index-1 drift, no projection
     # friction = m × acceleration of the centre (the only horizontal force): m ω_c e_z × v
     v = traj.qd[:, :2]
-    assert np.allclose(traj.velocity_multipliers, args["m"] * rate * jnp.stack([-v[:, 1], v[:, 0]], 1),
-                       atol=1e-9)
+    assert np.allclose(
+        traj.velocity_multipliers, args["m"] * rate * jnp.stack([-v[:, 1], v[:, 0]], 1), atol=1e-9
+    )
 
 
 def test_rolling_helpers_errors_and_transforms():
@@ -534,6 +565,7 @@ def test_rolling_helpers_errors_and_transforms():
     assert out.shape == (4, 2)
     # affine in q̇: ∂g/∂R by grad equals a finite difference
     grad = jax.grad(lambda r: rolling(q, qds[0], 0.0, {"R": r})[0])(0.3)
+
     def first(r):
         return rolling(q, qds[0], 0.0, {"R": r})[0]
 
@@ -542,7 +574,7 @@ def test_rolling_helpers_errors_and_transforms():
 
 
 # ----------------------------------------------------------------------------- closed loops
-BAR = {"a": 0.3, "b": 1.0, "c": 0.8, "d": 0.9}   # crank, coupler, rocker, ground (Grashof crank)
+BAR = {"a": 0.3, "b": 1.0, "c": 0.8, "d": 0.9}  # crank, coupler, rocker, ground (Grashof crank)
 
 
 def _four_bar():
@@ -552,9 +584,11 @@ def _four_bar():
             length = args["abc"[index]]
             direction = jnp.stack([jnp.cos(q[index]), jnp.sin(q[index])])
             centre = start(q, args) + 0.5 * length * direction
-            return jnp.concatenate([centre, q[index:index + 1]])
-        return coordinates.RigidBody2D(pose, mass=lambda a: a["abc"[index]],
-                                       inertia=lambda a: a["abc"[index]] ** 3 / 12)
+            return jnp.concatenate([centre, q[index : index + 1]])
+
+        return coordinates.RigidBody2D(
+            pose, mass=lambda a: a["abc"[index]], inertia=lambda a: a["abc"[index]] ** 3 / 12
+        )
 
     def crank_end(q, args):
         return args["a"] * jnp.stack([jnp.cos(q[0]), jnp.sin(q[0])])
@@ -566,20 +600,26 @@ def _four_bar():
 
     def closure(q, args):
         a, b, c, d = (args[k] for k in "abcd")
-        return (a * jnp.stack([jnp.cos(q[0]), jnp.sin(q[0])]) + b * jnp.stack([jnp.cos(q[1]), jnp.sin(q[1])])
-                - c * jnp.stack([jnp.cos(q[2]), jnp.sin(q[2])]) - jnp.stack([d, 0.0]))
+        return (
+            a * jnp.stack([jnp.cos(q[0]), jnp.sin(q[0])])
+            + b * jnp.stack([jnp.cos(q[1]), jnp.sin(q[1])])
+            - c * jnp.stack([jnp.cos(q[2]), jnp.sin(q[2])])
+            - jnp.stack([d, 0.0])
+        )
 
-    return jl.System(coordinates.lagrangian_from_positions(None, gravity=9.81, bodies=bodies),
-                     holonomic=closure)
+    return jl.System(
+        coordinates.lagrangian_from_positions(None, gravity=9.81, bodies=bodies), holonomic=closure
+    )
 
 
 def test_four_bar_consistent_state_holds_the_crank():
     system = _four_bar()
     crank, crank_rate = 0.6, 1.5
     guess_q, guess_qd = jnp.array([crank, 1.0, 2.0]), jnp.array([crank_rate, 0.0, 0.0])
-    q, qd = jl.consistent_initial_state(system, guess_q, guess_qd, args=BAR, fixed_q=(0,),
-                                        fixed_qd=(0,), newton_steps=8)
-    assert float(q[0]) == crank and float(qd[0]) == crank_rate          # held exactly
+    q, qd = jl.consistent_initial_state(
+        system, guess_q, guess_qd, args=BAR, fixed_q=(0,), fixed_qd=(0,), newton_steps=8
+    )
+    assert float(q[0]) == crank and float(qd[0]) == crank_rate  # held exactly
     # closed form: C is the intersection of |C − B| = b and |C − D| = c (the branch above BD)
     a, b, c, d = (BAR[k] for k in "abcd")
     pb, pd = a * np.array([np.cos(crank), np.sin(crank)]), np.array([d, 0.0])
@@ -595,9 +635,11 @@ def test_four_bar_consistent_state_holds_the_crank():
     rates = np.linalg.solve(matrix, -a * crank_rate * perp(crank))
     assert np.allclose(qd[1:], rates, atol=1e-12)
     # differentiable: dθ3/dθ1 from grad equals the velocity ratio
-    slope = jax.grad(lambda th: jl.consistent_initial_state(
-        system, jnp.array([th, 1.0, 2.0]), jnp.zeros(3), args=BAR, fixed_q=(0,),
-        newton_steps=8)[0][2])(crank)
+    slope = jax.grad(
+        lambda th: jl.consistent_initial_state(
+            system, jnp.array([th, 1.0, 2.0]), jnp.zeros(3), args=BAR, fixed_q=(0,), newton_steps=8
+        )[0][2]
+    )(crank)
     assert np.isclose(slope, rates[1] / crank_rate, rtol=1e-8)
 
 
@@ -607,12 +649,19 @@ def test_four_bar_holding_too_much_raises():
         jl.consistent_initial_state(system, jnp.zeros(3), jnp.zeros(3), args=BAR, fixed_q=(5,))
     # holding the crank and the coupler leaves one free angle for two closure equations
     with pytest.raises(Exception, match="consistent_initial_state"):
-        jl.consistent_initial_state(system, jnp.array([0.6, 1.0, 2.0]), jnp.zeros(3), args=BAR,
-                                    fixed_q=(0, 1))
+        jl.consistent_initial_state(
+            system, jnp.array([0.6, 1.0, 2.0]), jnp.zeros(3), args=BAR, fixed_q=(0, 1)
+        )
     # holding two rates at values the loop cannot share
     with pytest.raises(Exception, match="fixed_qd"):
-        jl.consistent_initial_state(system, jnp.array([0.6, 1.0, 2.0]), jnp.array([1.0, 1.0, 0.0]),
-                                    args=BAR, fixed_q=(0,), fixed_qd=(0, 1))
+        jl.consistent_initial_state(
+            system,
+            jnp.array([0.6, 1.0, 2.0]),
+            jnp.array([1.0, 1.0, 0.0]),
+            args=BAR,
+            fixed_q=(0,),
+            fixed_qd=(0, 1),
+        )
 
 
 # ----------------------------------------------------------------------------- gyroscope (a chain)
@@ -623,8 +672,11 @@ def test_gyroscope_chain_reduces_to_heavy_top_and_conserves(top_euler):
     rng = np.random.default_rng(2)
     for _ in range(3):
         x, v = jnp.asarray(rng.uniform(0.2, 1.2, 3)), jnp.asarray(rng.normal(size=3))
-        assert np.isclose(gyro.lagrangian(x, v, t=0.0, args=massless),
-                          top_euler.lagrangian(x, v, t=0.0, args=TOP), rtol=1e-13)
+        assert np.isclose(
+            gyro.lagrangian(x, v, t=0.0, args=massless),
+            top_euler.lagrangian(x, v, t=0.0, args=TOP),
+            rtol=1e-13,
+        )
     q, qd = jnp.array([0.2, 0.6, 0.1]), jnp.array([1.0, 0.5, 40.0])
     # with massive gimbals: energy, p_α (vertical axis) and p_γ = I3 (γ̇ + α̇ cos β) are conserved
     args = {**TOP, "inner": (0.004, 0.002, 0.004), "outer": (0.006, 0.006, 0.004)}

@@ -29,8 +29,9 @@ REVERSE = diffrax.RecursiveCheckpointAdjoint()
 
 def double_pendulum(q, qd, args):
     l1, l2, g = args["l1"], args["l2"], args["g"]
-    kinetic = 0.5 * (2 * l1**2 * qd[0] ** 2 + l2**2 * qd[1] ** 2
-                     + 2 * l1 * l2 * qd[0] * qd[1] * jnp.cos(q[0] - q[1]))
+    kinetic = 0.5 * (
+        2 * l1**2 * qd[0] ** 2 + l2**2 * qd[1] ** 2 + 2 * l1 * l2 * qd[0] * qd[1] * jnp.cos(q[0] - q[1])
+    )
     return kinetic + g * (2 * l1 * jnp.cos(q[0]) + l2 * jnp.cos(q[1]))
 
 
@@ -46,8 +47,7 @@ def _close(a, b, rtol=1e-9):
 
 @pytest.mark.parametrize("steps", ["adaptive", "constant"])
 def test_grad_equals_default_adjoint(steps):
-    kwargs = {} if steps == "adaptive" else dict(
-        stepsize_controller=diffrax.ConstantStepSize(), dt0=1e-3)
+    kwargs = {} if steps == "adaptive" else dict(stepsize_controller=diffrax.ConstantStepSize(), dt0=1e-3)
 
     def loss(params, q0, adjoint):
         traj = jl.simulate(SYSTEM, q0, QD0, TS, args=params, adjoint=adjoint, **kwargs)
@@ -71,8 +71,9 @@ def test_vmap_of_grad_and_vjp():
     gs = jnp.array([9.0, 9.81, 10.5])
     per_g = jax.vmap(jax.grad(lambda g: jnp.sum(final(g, FS) ** 2)))(gs)
     for i, g in enumerate(gs):
-        np.testing.assert_allclose(per_g[i], jax.grad(lambda x: jnp.sum(final(x, REVERSE) ** 2))(g),
-                                   rtol=1e-9)
+        np.testing.assert_allclose(
+            per_g[i], jax.grad(lambda x: jnp.sum(final(x, REVERSE) ** 2))(g), rtol=1e-9
+        )
     out, pullback = jax.vjp(lambda g: final(g, FS), gs[0])
     (cot,) = pullback(jnp.array([1.0, -2.0]))
     _, pullback_ref = jax.vjp(lambda g: final(g, REVERSE), gs[0])
@@ -92,8 +93,7 @@ def test_constrained_with_projection_and_release_event():
     q0 = jnp.array([jnp.sin(0.2), jnp.cos(0.2)])
 
     def release_time(g, adjoint):
-        traj = jl.simulate(system, q0, jnp.zeros(2), jnp.linspace(0.0, 2.0, 21), args=g,
-                           adjoint=adjoint)
+        traj = jl.simulate(system, q0, jnp.zeros(2), jnp.linspace(0.0, 2.0, 21), args=g, adjoint=adjoint)
         return traj.events.time[0]
 
     g = jnp.asarray(9.81)
@@ -106,13 +106,17 @@ def test_constrained_with_projection_and_release_event():
 def test_nothing_differentiated_and_forward_mode_pointer():
     traj = jl.simulate(SYSTEM, Q0, QD0, TS, args=PARAMS, adjoint=FS)
     np.testing.assert_allclose(
-        traj.q, jl.simulate(SYSTEM, Q0, QD0, TS, args=PARAMS, adjoint=REVERSE).q, rtol=0, atol=0)
+        traj.q, jl.simulate(SYSTEM, Q0, QD0, TS, args=PARAMS, adjoint=REVERSE).q, rtol=0, atol=0
+    )
     # A gradient that does not reach any input of the simulation (k = 0 perturbed leaves).
-    assert float(jax.grad(lambda s: s * jnp.sum(jl.simulate(
-        SYSTEM, Q0, QD0, TS, args=PARAMS, adjoint=FS).q))(2.0)) != 0.0
+    assert (
+        float(
+            jax.grad(lambda s: s * jnp.sum(jl.simulate(SYSTEM, Q0, QD0, TS, args=PARAMS, adjoint=FS).q))(2.0)
+        )
+        != 0.0
+    )
     with pytest.raises(TypeError, match="custom_vjp"):
-        jax.jacfwd(lambda g: jl.simulate(SYSTEM, Q0, QD0, TS, args=dict(PARAMS, g=g),
-                                         adjoint=FS).q)(9.81)
+        jax.jacfwd(lambda g: jl.simulate(SYSTEM, Q0, QD0, TS, args=dict(PARAMS, g=g), adjoint=FS).q)(9.81)
     with pytest.raises(TypeError, match="adjoint"):
         jl.simulate(SYSTEM, Q0, QD0, TS, args=PARAMS, adjoint="forward")
 
@@ -124,8 +128,12 @@ def test_many_differentiated_scalars_fall_back_to_the_checkpointed_adjoint():
         return 0.5 * jnp.mean(args**2) * jnp.sum(qd**2) - 0.5 * jnp.sum(q**2)
 
     def loss(w, adjoint):
-        return jnp.sum(jl.simulate(jl.System(lagrangian), jnp.ones(2), jnp.zeros(2), TS[:3],
-                                   args=w, adjoint=adjoint).q[-1] ** 2)
+        return jnp.sum(
+            jl.simulate(jl.System(lagrangian), jnp.ones(2), jnp.zeros(2), TS[:3], args=w, adjoint=adjoint).q[
+                -1
+            ]
+            ** 2
+        )
 
     expected = jax.grad(loss)(weights, REVERSE)
     assert float(jnp.max(jnp.abs(expected))) > 1e-4

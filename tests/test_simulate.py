@@ -40,7 +40,7 @@ def test_harmonic_oscillator_matches_exact_solution():
     exact_v = -0.3 * omega * jnp.sin(omega * ts) - 0.5 * jnp.cos(omega * ts)
     np.testing.assert_allclose(traj.q[:, 0], exact, atol=1e-9)
     np.testing.assert_allclose(traj.qd[:, 0], exact_v, atol=1e-9)
-    np.testing.assert_allclose(traj.accelerations[:, 0], -omega**2 * traj.q[:, 0], atol=1e-12)
+    np.testing.assert_allclose(traj.accelerations[:, 0], -(omega**2) * traj.q[:, 0], atol=1e-12)
 
 
 @pytest.mark.parametrize("theta0", [1e-3, 0.5, 2.5])
@@ -82,9 +82,7 @@ def test_kepler_orbit_closes_with_the_right_period_and_conserves_angular_momentu
     v_p = math.sqrt(mu * (1 + e) / (a * (1 - e)))
     period = 2 * math.pi * math.sqrt(a**3 / mu)
     ts = jnp.linspace(0.0, period, 50)
-    traj = jl.simulate(
-        jl.System(kepler), [r_p, 0.0], [0.0, v_p / r_p], ts, args={"m": m, "k": k}, **TIGHT
-    )
+    traj = jl.simulate(jl.System(kepler), [r_p, 0.0], [0.0, v_p / r_p], ts, args={"m": m, "k": k}, **TIGHT)
     np.testing.assert_allclose(traj.q[-1], [r_p, 2 * math.pi], atol=1e-9)
     np.testing.assert_allclose(traj.qd[-1, 0], 0.0, atol=1e-8)
     # θ is ignorable: p_θ = m r² θ̇ is conserved.
@@ -135,22 +133,26 @@ def test_time_dependent_lagrangian_matches_hand_derived_equation():
     def hand(t, y, a):
         th, thd = y
         # θ̈ = −(g/l) sin θ + (a ω²/l) cos(θ − ω t)
-        return thd, -a["g"] / a["l"] * jnp.sin(th) + a["a"] * a["w"] ** 2 / a["l"] * jnp.cos(
-            th - a["w"] * t
-        )
+        return thd, -a["g"] / a["l"] * jnp.sin(th) + a["a"] * a["w"] ** 2 / a["l"] * jnp.cos(th - a["w"] * t)
 
     ref = diffrax.diffeqsolve(
-        diffrax.ODETerm(hand), diffrax.Tsit5(), 0.0, 5.0, None, (jnp.array(0.4), jnp.array(0.0)),
-        args, saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=diffrax.PIDController(rtol=1e-12, atol=1e-12), max_steps=100_000,
+        diffrax.ODETerm(hand),
+        diffrax.Tsit5(),
+        0.0,
+        5.0,
+        None,
+        (jnp.array(0.4), jnp.array(0.0)),
+        args,
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.PIDController(rtol=1e-12, atol=1e-12),
+        max_steps=100_000,
     )
     np.testing.assert_allclose(traj.q[:, 0], ref.ys[0], atol=1e-9)
     np.testing.assert_allclose(traj.qd[:, 0], ref.ys[1], atol=1e-9)
 
 
 def test_default_solver_runs_without_options():
-    traj = jl.simulate(jl.System(harmonic), [1.0], [0.0], jnp.linspace(0, 1, 5),
-                       args={"m": 1.0, "k": 1.0})
+    traj = jl.simulate(jl.System(harmonic), [1.0], [0.0], jnp.linspace(0, 1, 5), args={"m": 1.0, "k": 1.0})
     np.testing.assert_allclose(traj.q[:, 0], jnp.cos(jnp.linspace(0, 1, 5)), atol=1e-9)
     assert traj.stats["num_steps"] > 0
 
@@ -158,14 +160,28 @@ def test_default_solver_runs_without_options():
 def test_diffrax_options_pass_through():
     ts = jnp.linspace(0.0, 1.0, 5)
     traj = jl.simulate(
-        jl.System(harmonic), [1.0], [0.0], t0=0.0, t1=1.0, args={"m": 1.0, "k": 1.0},
-        solver=diffrax.Dopri8(), stepsize_controller=diffrax.ConstantStepSize(), dt0=0.01,
-        saveat=diffrax.SaveAt(ts=ts), max_steps=200,
+        jl.System(harmonic),
+        [1.0],
+        [0.0],
+        t0=0.0,
+        t1=1.0,
+        args={"m": 1.0, "k": 1.0},
+        solver=diffrax.Dopri8(),
+        stepsize_controller=diffrax.ConstantStepSize(),
+        dt0=0.01,
+        saveat=diffrax.SaveAt(ts=ts),
+        max_steps=200,
     )
     assert int(traj.stats["num_steps"]) == 100
     np.testing.assert_allclose(traj.q[:, 0], jnp.cos(ts), atol=1e-12)
     with pytest.raises(Exception, match="max_steps"):
         jl.simulate(
-            jl.System(harmonic), [1.0], [0.0], ts, args={"m": 1.0, "k": 1.0},
-            stepsize_controller=diffrax.ConstantStepSize(), dt0=0.01, max_steps=10,
+            jl.System(harmonic),
+            [1.0],
+            [0.0],
+            ts,
+            args={"m": 1.0, "k": 1.0},
+            stepsize_controller=diffrax.ConstantStepSize(),
+            dt0=0.01,
+            max_steps=10,
         )

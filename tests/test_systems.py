@@ -33,9 +33,15 @@ G = 9.81
 
 
 def simulate(system, q0, qd0, ts, args=None):
-    return jl.simulate(system, jnp.asarray(q0, float), jnp.asarray(qd0, float),
-                       jnp.asarray(ts, float), args=args, check_initial_state=False,
-                       projection=None)
+    return jl.simulate(
+        system,
+        jnp.asarray(q0, float),
+        jnp.asarray(qd0, float),
+        jnp.asarray(ts, float),
+        args=args,
+        check_initial_state=False,
+        projection=None,
+    )
 
 
 def assert_conserved(values, rtol=1e-9):
@@ -47,6 +53,7 @@ def assert_conserved(values, rtol=1e-9):
 # --------------------------------------------------------------------------------------------
 # Pendulums
 # --------------------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("form", ["generalized", "cartesian"])
 def test_simple_pendulum_half_period(form):
@@ -66,8 +73,7 @@ def test_simple_pendulum_half_period(form):
     if form == "cartesian":
         # f = |x| − l: λ = −m l θ̇² − m g cos θ (minus the tension), with θ̇ from energy.
         thd2 = 2 * G / l * (np.cos(theta) - math.cos(th0))
-        np.testing.assert_allclose(traj.multipliers[:, 0], -0.8 * (l * thd2 + G * np.cos(theta)),
-                                   rtol=1e-9)
+        np.testing.assert_allclose(traj.multipliers[:, 0], -0.8 * (l * thd2 + G * np.cos(theta)), rtol=1e-9)
 
 
 def _chain_state(angles, rates, lengths):
@@ -118,10 +124,16 @@ def test_spherical_pendulum_conical_motion(form):
         assert_conserved(traj.momenta[:, 1])  # p_φ = L_z: φ is cyclic
     else:
         rho = l * math.sin(th0)
-        traj = simulate(systems.spherical_pendulum("cartesian"), [rho, 0.0, -l * math.cos(th0)],
-                        [0.0, rho * rate, 0.0], ts, {"m": 1.0, "l": l})
-        expected = np.stack([rho * np.cos(rate * ts), rho * np.sin(rate * ts),
-                             np.full(ts.shape, -l * math.cos(th0))], -1)
+        traj = simulate(
+            systems.spherical_pendulum("cartesian"),
+            [rho, 0.0, -l * math.cos(th0)],
+            [0.0, rho * rate, 0.0],
+            ts,
+            {"m": 1.0, "l": l},
+        )
+        expected = np.stack(
+            [rho * np.cos(rate * ts), rho * np.sin(rate * ts), np.full(ts.shape, -l * math.cos(th0))], -1
+        )
         np.testing.assert_allclose(traj.q, expected, atol=1e-8)
     assert_conserved(traj.energy)
 
@@ -150,20 +162,21 @@ def test_cart_pole_with_a_constant_force():
     traj = simulate(system, [0.0, 0.2], [0.1, 0.0], ts, args)
     p = traj.momenta
     np.testing.assert_allclose(p[:, 0], p[0, 0] + force * ts, atol=1e-9)
-    np.testing.assert_allclose(traj.energy - traj.energy[0], force * (traj.q[:, 0] - traj.q[0, 0]),
-                               atol=1e-9)
+    np.testing.assert_allclose(traj.energy - traj.energy[0], force * (traj.q[:, 0] - traj.q[0, 0]), atol=1e-9)
     # A feedback controller instead of the constant force: u = −k ẋ, with k read from args.
     # The generalized forces differ from the uncontrolled ones by exactly (u, 0).
     damped = systems.cart_pole(lambda q, qd, args: -args["k"] * qd[0])
     q, qd = jnp.array([0.1, 0.2]), jnp.array([0.3, -0.4])
     forces = jax.jit(lambda s, a: s.generalized_forces(q, qd, 0.0, a), static_argnums=0)
-    np.testing.assert_allclose(forces(damped, {"k": 2.0}) - forces(system, None),
-                               [-2.0 * 0.3, 0.0], atol=1e-14)
+    np.testing.assert_allclose(
+        forces(damped, {"k": 2.0}) - forces(system, None), [-2.0 * 0.3, 0.0], atol=1e-14
+    )
 
 
 # --------------------------------------------------------------------------------------------
 # Beads and particles on curves and surfaces
 # --------------------------------------------------------------------------------------------
+
 
 def test_bead_on_spinning_hoop_both_forms():
     # ω² < g/R: the bead oscillates about the bottom. Generalized form: the Jacobi integral
@@ -195,8 +208,9 @@ def test_bead_on_rotating_parabola_both_forms():
     h = 0.5 * rd**2 * (1 + 4 * c**2 * r**2) - 0.5 * w**2 * r**2 + G * c * r**2
     assert_conserved(h)
     np.testing.assert_allclose(a.energy, h, rtol=1e-12)
-    b = simulate(systems.bead_on_rotating_parabola("cylindrical"), [r0, 0.0, c * r0**2],
-                 [0.0, w, 0.0], ts, args)
+    b = simulate(
+        systems.bead_on_rotating_parabola("cylindrical"), [r0, 0.0, c * r0**2], [0.0, w, 0.0], ts, args
+    )
     np.testing.assert_allclose(b.q[:, 0], r, rtol=1e-8)
     np.testing.assert_allclose(b.q[:, 1], w * ts, atol=1e-9)
     np.testing.assert_allclose(b.q[:, 2], c * r**2, rtol=1e-8)
@@ -222,8 +236,7 @@ def test_cone_circular_orbit(form):
     else:
         rho, z = r0 * math.sin(alpha), r0 * math.cos(alpha)
         traj = simulate(system, [rho, 0.0, z], [0.0, rho * rate, 0.0], ts, args)
-        expected = np.stack([rho * np.cos(rate * ts), rho * np.sin(rate * ts),
-                             np.full(ts.shape, z)], -1)
+        expected = np.stack([rho * np.cos(rate * ts), rho * np.sin(rate * ts), np.full(ts.shape, z)], -1)
         np.testing.assert_allclose(traj.q, expected, atol=1e-8)
         # The normal force balances gravity and supplies the centripetal force:
         # N = m (g sin α + ρ φ̇² cos α) (outward normal ∇f = (cos α ρ̂, −sin α) has unit length,
@@ -243,12 +256,16 @@ def test_particle_on_sphere_normal_force(form):
         traj = simulate(systems.particle_on_sphere(), [R, th0, 0.4], [0.0, 0.0, 0.0], ts, args)
         cos_th = np.cos(np.asarray(traj.q[:, 1]))
     else:
-        traj = simulate(systems.particle_on_sphere("cartesian"),
-                        [R * math.sin(th0), 0.0, R * math.cos(th0)], [0.0, 0.0, 0.0], ts, args)
+        traj = simulate(
+            systems.particle_on_sphere("cartesian"),
+            [R * math.sin(th0), 0.0, R * math.cos(th0)],
+            [0.0, 0.0, 0.0],
+            ts,
+            args,
+        )
         cos_th = np.asarray(traj.q[:, 2]) / R
     assert cos_th[-1] < math.cos(th0) - 0.1  # it did slide
-    np.testing.assert_allclose(traj.multipliers[:, 0], m * G * (3 * cos_th - 2 * math.cos(th0)),
-                               rtol=1e-9)
+    np.testing.assert_allclose(traj.multipliers[:, 0], m * G * (3 * cos_th - 2 * math.cos(th0)), rtol=1e-9)
     assert_conserved(traj.energy)
     assert systems.particle_on_sphere(unilateral=True).unilateral == (0,)
 
@@ -262,8 +279,9 @@ def test_spiral_both_forms():
     polar = simulate(systems.spiral(), [a * th0, th0], [a * thd0, thd0], ts, args)
     th, thd = np.asarray(polar.q[:, 1]), np.asarray(polar.qd[:, 1])
     np.testing.assert_allclose(polar.accelerations[:, 1], -th * thd**2 / (1 + th**2), rtol=1e-9)
-    np.testing.assert_allclose(polar.multipliers[:, 0],
-                               -m * a * thd**2 * (2 * th + th**3) / (1 + th**2), rtol=1e-9)
+    np.testing.assert_allclose(
+        polar.multipliers[:, 0], -m * a * thd**2 * (2 * th + th**3) / (1 + th**2), rtol=1e-9
+    )
     assert_conserved(a * np.abs(thd) * np.sqrt(1 + th**2))
     reduced = simulate(systems.spiral("generalized"), [th0], [thd0], ts, args)
     np.testing.assert_allclose(reduced.q[:, 0], th, rtol=1e-8)
@@ -272,6 +290,7 @@ def test_spiral_both_forms():
 # --------------------------------------------------------------------------------------------
 # Fields
 # --------------------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("form", ["polar", "cartesian"])
 def test_kepler_period(form):
@@ -300,10 +319,10 @@ def test_charged_particle_gyration_and_drift():
     m, e, b, ex, ez = 2.0, 0.5, 1.5, 0.3, 0.1
     args = {"m": m, "charge": e, "B": jnp.array([0.0, 0.0, b]), "E": jnp.array([ex, 0.0, ez])}
     period = 2 * math.pi * m / (e * b)
-    traj = simulate(systems.charged_particle(), [0.0, 0.0, 0.0], [0.4, 0.2, 0.0],
-                    jnp.linspace(0, period, 3), args)
-    np.testing.assert_allclose(traj.q[-1], [0.0, -ex / b * period, 0.5 * e * ez / m * period**2],
-                               atol=1e-8)
+    traj = simulate(
+        systems.charged_particle(), [0.0, 0.0, 0.0], [0.4, 0.2, 0.0], jnp.linspace(0, period, 3), args
+    )
+    np.testing.assert_allclose(traj.q[-1], [0.0, -ex / b * period, 0.5 * e * ez / m * period**2], atol=1e-8)
     np.testing.assert_allclose(traj.qd[-1, :2], [0.4, 0.2], atol=1e-8)
 
 
@@ -311,12 +330,12 @@ def test_charged_particle_gyration_and_drift():
 # Rolling and skating
 # --------------------------------------------------------------------------------------------
 
+
 def test_rolling_disk_circles():
     # θ̇ and φ̇ constant: ẋ = Rθ̇ cos(φ̇t), ẏ = Rθ̇ sin(φ̇t), a circle of radius Rθ̇/φ̇.
     R, thd, phd = 0.5, 2.0, 0.8
     ts = jnp.linspace(0, 2.0, 5)
-    traj = simulate(systems.rolling_disk(), [0.0, 0.0, 0.0, 0.0], [R * thd, 0.0, phd, thd], ts,
-                    {"R": R})
+    traj = simulate(systems.rolling_disk(), [0.0, 0.0, 0.0, 0.0], [R * thd, 0.0, phd, thd], ts, {"R": R})
     rho = R * thd / phd
     expected = np.stack([rho * np.sin(phd * ts), rho * (1 - np.cos(phd * ts))], -1)
     np.testing.assert_allclose(traj.q[:, :2], expected, atol=1e-8)
@@ -328,8 +347,7 @@ def test_disk_on_incline():
     # Seed 001: s̈ = ⅔ g sin α, friction multiplier λ = −⅓ m g sin α.
     m, alpha = 2.0, 0.4
     ts = jnp.linspace(0, 1.0, 5)
-    traj = simulate(systems.disk_on_incline(), [0.0, 0.0], [0.0, 0.0], ts,
-                    {"m": m, "alpha": alpha, "R": 0.3})
+    traj = simulate(systems.disk_on_incline(), [0.0, 0.0], [0.0, 0.0], ts, {"m": m, "alpha": alpha, "R": 0.3})
     np.testing.assert_allclose(traj.q[:, 0], G * math.sin(alpha) * ts**2 / 3, atol=1e-9)
     np.testing.assert_allclose(traj.multipliers[:, 0], -m * G * math.sin(alpha) / 3, rtol=1e-9)
 
@@ -350,6 +368,7 @@ def test_knife_edge_drifts_across_the_slope():
 # --------------------------------------------------------------------------------------------
 # Parameters
 # --------------------------------------------------------------------------------------------
+
 
 def test_parameters_defaults_and_errors():
     assert systems.default_args(systems.simple_pendulum) == {"m": 1.0, "l": 1.0, "g": 9.81}

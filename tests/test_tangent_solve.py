@@ -81,8 +81,7 @@ def test_constant_mass_depending_on_parameters(tangent_solves):
     ``args`` (the tangent of that inverse enters every step through the equations' term)."""
 
     def lagrangian(q, qd, args):
-        return 0.5 * args["m"] * jnp.sum(qd**2) - args["m"] * args["g"] * q[1] \
-            + 0.5 * args["k"] * q[0] ** 2
+        return 0.5 * args["m"] * jnp.sum(qd**2) - args["m"] * args["g"] * q[1] + 0.5 * args["k"] * q[0] ** 2
 
     system = jl.System(lagrangian, holonomic=lambda q: jnp.array([jnp.sum(q**2) - 1.0]))
     q0, qd0 = jnp.array([jnp.sin(0.4), -jnp.cos(0.4)]), jnp.zeros(2)
@@ -107,9 +106,19 @@ def test_constant_steps_and_baumgarte(solver, tangent_solves):
     q0, qd0 = jnp.array([0.6, -0.8]), jnp.array([0.8, 0.6])
 
     def loss(args, adjoint=None):
-        traj = jl.simulate(system, q0, qd0, TS, args=args, adjoint=adjoint, solver=solver,
-                           stepsize_controller=diffrax.ConstantStepSize(), dt0=1e-3,
-                           baumgarte=jl.Baumgarte(alpha=5.0, beta=6.0), projection=None)
+        traj = jl.simulate(
+            system,
+            q0,
+            qd0,
+            TS,
+            args=args,
+            adjoint=adjoint,
+            solver=solver,
+            stepsize_controller=diffrax.ConstantStepSize(),
+            dt0=1e-3,
+            baumgarte=jl.Baumgarte(alpha=5.0, beta=6.0),
+            projection=None,
+        )
         return jnp.sum(traj.q**2 * jnp.arange(1, 3))
 
     args = {"g": 9.81, "l": 1.0}
@@ -124,16 +133,22 @@ def test_other_inputs_take_the_general_path(tangent_solves):
     transform the state nonlinearly): the general paths, same answers."""
 
     def by_times(ts, adjoint=None):
-        return jnp.sum(jl.simulate(SPHERE, jnp.array([2.0, 0.1]), jnp.zeros(2), ts,
-                                   args=SPHERE_ARGS, adjoint=adjoint).q[:, 1] ** 2)
+        return jnp.sum(
+            jl.simulate(SPHERE, jnp.array([2.0, 0.1]), jnp.zeros(2), ts, args=SPHERE_ARGS, adjoint=adjoint).q[
+                :, 1
+            ]
+            ** 2
+        )
 
     got = jax.grad(by_times)(TS)
     assert not tangent_solves
     _close(got, jax.grad(by_times)(TS, REVERSE))
 
     def by_closure(g, theta0, adjoint=None):
-        system = jl.System(lambda q, qd: sphere_lagrangian(q, qd, dict(SPHERE_ARGS, g=g)),
-                           holonomic=lambda q: jnp.array([q[0] - 2.0]))
+        system = jl.System(
+            lambda q, qd: sphere_lagrangian(q, qd, dict(SPHERE_ARGS, g=g)),
+            holonomic=lambda q: jnp.array([q[0] - 2.0]),
+        )
         traj = jl.simulate(system, jnp.stack([2.0, theta0]), jnp.zeros(2), TS, adjoint=adjoint)
         return jnp.sum(traj.q[:, 1] ** 2)
 
@@ -145,8 +160,10 @@ def test_other_inputs_take_the_general_path(tangent_solves):
 
 def test_vmap_of_grad(tangent_solves):
     def loss(g):
-        return jnp.sum(jl.simulate(SPHERE, jnp.array([2.0, 0.1]), jnp.zeros(2), TS,
-                                   args=dict(SPHERE_ARGS, g=g)).q[:, 1] ** 2)
+        return jnp.sum(
+            jl.simulate(SPHERE, jnp.array([2.0, 0.1]), jnp.zeros(2), TS, args=dict(SPHERE_ARGS, g=g)).q[:, 1]
+            ** 2
+        )
 
     gs = jnp.array([9.0, 9.81, 10.5])
     batched = jax.vmap(jax.grad(loss))(gs)
@@ -166,8 +183,15 @@ def test_wrapped_solver_takes_the_general_path(system, tangent_solves):
     simulated = SPHERE if system == "constrained" else jl.System(sphere_lagrangian)
 
     def loss(args, adjoint=None):
-        traj = jl.simulate(simulated, jnp.array([2.0, 0.1]), jnp.zeros(2), TS, args=args,
-                           adjoint=adjoint, solver=_Wrapped(diffrax.Tsit5()))
+        traj = jl.simulate(
+            simulated,
+            jnp.array([2.0, 0.1]),
+            jnp.zeros(2),
+            TS,
+            args=args,
+            adjoint=adjoint,
+            solver=_Wrapped(diffrax.Tsit5()),
+        )
         return jnp.sum(traj.q[:, 1] ** 2)
 
     got = jax.grad(loss)(SPHERE_ARGS)

@@ -52,8 +52,13 @@ def test_grad_wrt_parameter_matches_central_differences_fixed_step():
     # error is O(h²) ~ 1e-10 relative and autodiff is exact for the discrete map.
     def loss(g):
         traj = jl.simulate(
-            SYSTEM, [1.0], [0.0], TS, args={"g": g, "l": 1.3},
-            stepsize_controller=diffrax.ConstantStepSize(), dt0=0.01,
+            SYSTEM,
+            [1.0],
+            [0.0],
+            TS,
+            args={"g": g, "l": 1.3},
+            stepsize_controller=diffrax.ConstantStepSize(),
+            dt0=0.01,
         )
         return jnp.sum(traj.q[:, 0] ** 2)
 
@@ -70,8 +75,9 @@ def test_grad_wrt_parameter_and_initial_state_adaptive():
     tight = diffrax.PIDController(rtol=1e-12, atol=1e-12)
 
     def loss(g, theta0):
-        traj = jl.simulate(SYSTEM, jnp.array([theta0]), jnp.zeros(1), TS,
-                           args={"g": g, "l": 1.3}, stepsize_controller=tight)
+        traj = jl.simulate(
+            SYSTEM, jnp.array([theta0]), jnp.zeros(1), TS, args={"g": g, "l": 1.3}, stepsize_controller=tight
+        )
         return jnp.sum(jnp.sin(traj.q[:, 0]))
 
     dg, dth = jax.grad(loss, argnums=(0, 1))(9.81, 0.8)

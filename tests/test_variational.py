@@ -43,15 +43,20 @@ def double_pendulum():
         return 0.5 * jnp.sum(qd**2) - g * (q[1] + q[3])
 
     def links(q):
-        return jnp.array([q[0] ** 2 + q[1] ** 2 - 1.0,
-                          (q[2] - q[0]) ** 2 + (q[3] - q[1]) ** 2 - 1.0])
+        return jnp.array([q[0] ** 2 + q[1] ** 2 - 1.0, (q[2] - q[0]) ** 2 + (q[3] - q[1]) ** 2 - 1.0])
 
     th1, th2, w1, w2 = 1.0, 2.0, 0.5, -0.3
-    q0 = jnp.array([math.sin(th1), -math.cos(th1), math.sin(th1) + math.sin(th2),
-                    -math.cos(th1) - math.cos(th2)])
-    qd0 = jnp.array([w1 * math.cos(th1), w1 * math.sin(th1),
-                     w1 * math.cos(th1) + w2 * math.cos(th2),
-                     w1 * math.sin(th1) + w2 * math.sin(th2)])
+    q0 = jnp.array(
+        [math.sin(th1), -math.cos(th1), math.sin(th1) + math.sin(th2), -math.cos(th1) - math.cos(th2)]
+    )
+    qd0 = jnp.array(
+        [
+            w1 * math.cos(th1),
+            w1 * math.sin(th1),
+            w1 * math.cos(th1) + w2 * math.cos(th2),
+            w1 * math.sin(th1) + w2 * math.sin(th2),
+        ]
+    )
     return jl.System(lagrangian, holonomic=links), q0, qd0
 
 
@@ -97,8 +102,10 @@ def test_energy_error_bounded_where_runge_kutta_drifts():
     e = 0.5
     k0, kd0 = jnp.array([1 - e, 0.0]), jnp.array([0.0, math.sqrt((1 + e) / (1 - e))])
     n = 100_000
-    for system, a, b, h, run_args in [(PENDULUM, q0, qd0, 0.01, args),
-                                      (orbit, k0, kd0, 2 * math.pi / 100, None)]:
+    for system, a, b, h, run_args in [
+        (PENDULUM, q0, qd0, 0.01, args),
+        (orbit, k0, kd0, 2 * math.pi / 100, None),
+    ]:
         vi = simulate_variational(system, a, b, dt=h, num_steps=n, save_every=100, args=run_args)
         early, late = early_and_late_error(vi.energy)
         # Bounded: the error of the last tenth is no larger than that of the first (a linear
@@ -106,15 +113,32 @@ def test_energy_error_bounded_where_runge_kutta_drifts():
         assert late <= 1.2 * early
         assert late < 1e-2
         ts = jnp.arange(n // 100 + 1) * h * 100
-        rk = jl.simulate(system, a, b, ts, args=run_args, solver=diffrax.Tsit5(),
-                         stepsize_controller=diffrax.ConstantStepSize(), dt0=h, max_steps=n + 10)
+        rk = jl.simulate(
+            system,
+            a,
+            b,
+            ts,
+            args=run_args,
+            solver=diffrax.Tsit5(),
+            stepsize_controller=diffrax.ConstantStepSize(),
+            dt0=h,
+            max_steps=n + 10,
+        )
         rk_early, rk_late = early_and_late_error(rk.energy)
         # Tsit5 at the same step is far more accurate early on but drifts linearly (×10 over
         # the ×10 longer time: measured 2.7e-7 -> 2.7e-6 and 8.8e-6 -> 8.8e-5).
         assert rk_late >= 5.0 * rk_early
         if run_args is None:  # the Kepler orbit (cheap, unconstrained)
-            rk2 = jl.simulate(system, a, b, ts, solver=diffrax.Midpoint(), dt0=h,
-                              stepsize_controller=diffrax.ConstantStepSize(), max_steps=n + 10)
+            rk2 = jl.simulate(
+                system,
+                a,
+                b,
+                ts,
+                solver=diffrax.Midpoint(),
+                dt0=h,
+                stepsize_controller=diffrax.ConstantStepSize(),
+                max_steps=n + 10,
+            )
             # The explicit RK of the same (second) order and step ends ~100x worse: the orbit
             # decays (measured 0.28 -> 0.50 of |E| = 0.5).
             assert early_and_late_error(rk2.energy)[1] > 30 * late
@@ -131,8 +155,7 @@ def test_spherical_pendulum_angular_momentum_is_conserved_to_roundoff(method):
     q0 = jnp.array([l * math.sin(2.0), 0.0, -l * math.cos(2.0)])
     qd0 = jnp.array([0.0, 1.7, 0.0])
     n = 20_000
-    traj = simulate_variational(system, q0, qd0, dt=0.01, num_steps=n, save_every=10,
-                                method=method)
+    traj = simulate_variational(system, q0, qd0, dt=0.01, num_steps=n, save_every=10, method=method)
     lz = m * (traj.q[:, 0] * traj.qd[:, 1] - traj.q[:, 1] * traj.qd[:, 0])
     # Discrete Noether: L_d and f are invariant under rotations about z, so L_z of the discrete
     # momenta is exact up to rounding, which adds up at most linearly: with ~10 roundings per
@@ -156,15 +179,26 @@ def test_convergence_order_on_the_pendulum_closed_form(method, order):
     for n in (50, 100, 200):
         # One compilation: 200 steps saved every 50; with h = quarter/n the quarter period is
         # reached at the saved index n/50.
-        traj = simulate_variational(PENDULUM, q0, qd0, dt=quarter / n, num_steps=200,
-                                    save_every=50, args=PENDULUM_ARGS, method=method, order=order)
+        traj = simulate_variational(
+            PENDULUM,
+            q0,
+            qd0,
+            dt=quarter / n,
+            num_steps=200,
+            save_every=50,
+            args=PENDULUM_ARGS,
+            method=method,
+            order=order,
+        )
         i = n // 50
-        errors.append([
-            float(jnp.max(jnp.abs(traj.q[i] - q_exact))),
-            float(jnp.max(jnp.abs(traj.qd[i] - qd_exact))),
-            abs(float(traj.multipliers[i, 0]) - lam_exact),  # KKT λ at the computed state
-            abs(float(traj.stats["multipliers"][i, 0]) - lam_exact),  # the integrator's own
-        ])
+        errors.append(
+            [
+                float(jnp.max(jnp.abs(traj.q[i] - q_exact))),
+                float(jnp.max(jnp.abs(traj.qd[i] - qd_exact))),
+                abs(float(traj.multipliers[i, 0]) - lam_exact),  # KKT λ at the computed state
+                abs(float(traj.stats["multipliers"][i, 0]) - lam_exact),  # the integrator's own
+            ]
+        )
     orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
     # Measured orders agree with the claim to ±0.01 at these step counts (errors far above
     # round-off); the integrator's discrete multipliers are second order for every composition.
@@ -184,8 +218,15 @@ def test_multipliers_follow_the_kkt_sign_convention_with_a_state_dependent_mass_
     system = jl.System(lagrangian, holonomic=lambda q: jnp.array([q[0] - l]))
     assert lagrangian_structure(system, jnp.array([l, 2.0]), jnp.zeros(2)) == (True, False)
     for method in ("rattle", "variational"):
-        traj = simulate_variational(system, jnp.array([l, 2.0]), jnp.array([0.0, 0.3]), dt=1e-3,
-                                    num_steps=1000, save_every=100, method=method)
+        traj = simulate_variational(
+            system,
+            jnp.array([l, 2.0]),
+            jnp.array([0.0, 0.3]),
+            dt=1e-3,
+            num_steps=1000,
+            save_every=100,
+            method=method,
+        )
         th, thd = traj.q[:, 1], traj.qd[:, 1]
         closed_form = -m * l * thd**2 - m * g * jnp.cos(th)
         # O(h²) = 1e-6 times a sensitivity of ~10-100 for |λ| up to 50; measured 4e-5 (rattle)
@@ -221,8 +262,7 @@ def test_general_lagrangian_with_constraint_matches_the_kkt_path():
     # p = γ m q̇ is a discrete Noether invariant: exact up to rounding (bound: 10 roundings per
     # step, 1e-11; measured 3.7e-14), while the energy error stays O(h²) (measured 2.9e-8).
     n = 2000
-    traj = simulate_variational(jl.System(lagrangian), q0, qd0, dt=1e-3, num_steps=n,
-                                save_every=10)
+    traj = simulate_variational(jl.System(lagrangian), q0, qd0, dt=1e-3, num_steps=n, save_every=10)
     p = traj.momenta
     lz = traj.q[:, 0] * p[:, 1] - traj.q[:, 1] * p[:, 0]
     assert float(jnp.max(jnp.abs(lz - lz[0]))) <= 10 * n * EPS * abs(float(lz[0]))
@@ -235,14 +275,12 @@ def test_rheonomic_constraint_moving_pivot():
     def rod_on_shaker(q, t):
         return jnp.array([jnp.sqrt((q[0] - a * jnp.sin(w * t)) ** 2 + q[1] ** 2) - l])
 
-    system = jl.System(lambda q, qd: 0.5 * m * jnp.sum(qd**2) - m * g * q[1],
-                       holonomic=rod_on_shaker)
+    system = jl.System(lambda q, qd: 0.5 * m * jnp.sum(qd**2) - m * g * q[1], holonomic=rod_on_shaker)
     q0 = jnp.array([l * math.sin(0.5), -l * math.cos(0.5)])
     qd0 = jnp.array([a * w, 0.0])  # moves with the pivot: ḟ = 0
     ref = jl.simulate(system, q0, qd0, jnp.array([0.0, 1.0, 2.0]), **TIGHT)
     for method in ("rattle",):  # explicit positions; the midpoint path shares the f_t handling
-        traj = simulate_variational(system, q0, qd0, dt=1e-3, num_steps=2000, save_every=1000,
-                                    method=method)
+        traj = simulate_variational(system, q0, qd0, dt=1e-3, num_steps=2000, save_every=1000, method=method)
         f, f_dot, _ = traj.constraint_residuals  # ḟ = J q̇ + ∂f/∂t
         assert float(jnp.max(jnp.abs(f))) <= 1e-12 and float(jnp.max(jnp.abs(f_dot))) <= 1e-12
         # O(h²) global error: measured 4.5e-7 (q), 5e-6 (q̇), 2e-5 (λ ≈ −9).
@@ -254,15 +292,23 @@ def test_rheonomic_constraint_moving_pivot():
 @pytest.mark.parametrize("method", ["rattle", "variational"])
 def test_dissipation_by_discrete_lagrange_dalembert_is_second_order(method):
     k, c = 4.0, 0.3
-    system = jl.System(lambda q, qd: 0.5 * qd[0] ** 2 - 0.5 * k * q[0] ** 2,
-                       dissipation=lambda q, qd: 0.5 * c * qd[0] ** 2)
+    system = jl.System(
+        lambda q, qd: 0.5 * qd[0] ** 2 - 0.5 * k * q[0] ** 2, dissipation=lambda q, qd: 0.5 * c * qd[0] ** 2
+    )
     zeta, wd = c / 2, math.sqrt(k - c * c / 4)
     t1 = 3.0
     exact = math.exp(-zeta * t1) * (math.cos(wd * t1) + zeta / wd * math.sin(wd * t1))
     errors = []
     for n in (100, 200, 400):  # one compilation; t1 is reached at the saved index n/100
-        traj = simulate_variational(system, jnp.array([1.0]), jnp.array([0.0]), dt=t1 / n,
-                                    num_steps=400, save_every=100, method=method)
+        traj = simulate_variational(
+            system,
+            jnp.array([1.0]),
+            jnp.array([0.0]),
+            dt=t1 / n,
+            num_steps=400,
+            save_every=100,
+            method=method,
+        )
         errors.append(abs(float(traj.q[n // 100, 0]) - exact))
     orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
     np.testing.assert_allclose(orders, 2.0, atol=0.05)  # measured 2.000 and 2.006
@@ -274,13 +320,21 @@ def test_structure_analysis_is_conservative():
     assert lagrangian_structure(cartesian, q, qd) == LagrangianStructure(True, True)
     # Quadratic, but written so that no structural analysis can see it: a slower path, and
     # method="rattle" checks quadraticity numerically instead.
-    hidden = jl.System(lambda q, qd: 0.5 * jnp.linalg.norm(qd) ** 2 - 9.81 * q[1],
-                       holonomic=lambda q: jnp.array([jnp.sum(q**2) - 0.13]))
+    hidden = jl.System(
+        lambda q, qd: 0.5 * jnp.linalg.norm(qd) ** 2 - 9.81 * q[1],
+        holonomic=lambda q: jnp.array([jnp.sum(q**2) - 0.13]),
+    )
     assert lagrangian_structure(hidden, q, qd) == LagrangianStructure(False, False)
     q0, qd0 = jnp.array([0.3, -0.2]), jnp.array([0.2, 0.3])
     a = simulate_variational(hidden, q0, qd0, dt=1e-3, num_steps=100, method="rattle")
-    b = simulate_variational(jl.System(cartesian.lagrangian, holonomic=hidden.holonomic), q0, qd0,
-                             dt=1e-3, num_steps=100, method="rattle")
+    b = simulate_variational(
+        jl.System(cartesian.lagrangian, holonomic=hidden.holonomic),
+        q0,
+        qd0,
+        dt=1e-3,
+        num_steps=100,
+        method="rattle",
+    )
     np.testing.assert_allclose(a.q, b.q, atol=1e-13)  # the same scheme, solved differently
 
 
@@ -289,16 +343,25 @@ def test_structure_analysis_is_conservative():
 def test_gradient_through_implicit_steps_matches_central_differences(method):
     def loss(params):
         q0, qd0 = pendulum_state(params["theta"], params["args"]["l"], params["omega"])
-        traj = simulate_variational(PENDULUM, q0, qd0, dt=params["dt"], num_steps=200,
-                                    save_every=20, args=params["args"], method=method)
-        return (jnp.sum(traj.q[:, 0] ** 2) + jnp.sum(traj.qd[:, 1])
-                + 0.01 * jnp.sum(traj.stats["multipliers"]))
+        traj = simulate_variational(
+            PENDULUM,
+            q0,
+            qd0,
+            dt=params["dt"],
+            num_steps=200,
+            save_every=20,
+            args=params["args"],
+            method=method,
+        )
+        return jnp.sum(traj.q[:, 0] ** 2) + jnp.sum(traj.qd[:, 1]) + 0.01 * jnp.sum(traj.stats["multipliers"])
 
-    params = jax.tree.map(jnp.asarray, {"theta": 1.2, "omega": 0.4, "dt": 0.005,
-                                        "args": {"m": 1.3, "g": 9.81, "l": 0.8}})
+    params = jax.tree.map(
+        jnp.asarray, {"theta": 1.2, "omega": 0.4, "dt": 0.005, "args": {"m": 1.3, "g": 9.81, "l": 0.8}}
+    )
     grads = jax.grad(loss)(params)
     compiled = jax.jit(loss)
     for path in [("theta",), ("omega",), ("dt",), ("args", "g"), ("args", "l"), ("args", "m")]:
+
         def shifted(delta):
             p = jax.tree.map(lambda x: x, params)
             node = p
@@ -328,8 +391,9 @@ def test_vmap_equals_loop_and_jit_returns_a_trajectory():
 
     def run(theta):
         q0, qd0 = pendulum_state(theta, PENDULUM_ARGS["l"])
-        return simulate_variational(PENDULUM, q0, qd0, dt=0.005, num_steps=400, save_every=40,
-                                    args=PENDULUM_ARGS)
+        return simulate_variational(
+            PENDULUM, q0, qd0, dt=0.005, num_steps=400, save_every=40, args=PENDULUM_ARGS
+        )
 
     batch = jax.vmap(run)(thetas)
     assert batch.q.shape == (4, 11, 2) and batch.energy.shape == (4, 11)
@@ -342,8 +406,10 @@ def test_vmap_equals_loop_and_jit_returns_a_trajectory():
 
 def test_closure_over_a_traced_parameter():
     def final_x(g):
-        system = jl.System(lambda q, qd: 0.5 * jnp.sum(qd**2) - g * q[1],
-                           holonomic=lambda q: jnp.array([jnp.sum(q**2) - 1.0]))
+        system = jl.System(
+            lambda q, qd: 0.5 * jnp.sum(qd**2) - g * q[1],
+            holonomic=lambda q: jnp.array([jnp.sum(q**2) - 1.0]),
+        )
         q0, qd0 = pendulum_state(1.0, 1.0)
         return simulate_variational(system, q0, qd0, dt=0.01, num_steps=50).q[-1, 0]
 
@@ -355,9 +421,14 @@ def test_closure_over_a_traced_parameter():
 # ----------------------------------------------------------------------------- errors
 def test_newton_failure_raises_a_clear_error():
     system, q0, _ = double_pendulum()
-    qd0 = jnp.array([3.5 * math.cos(1.0), 3.5 * math.sin(1.0),
-                     3.5 * math.cos(1.0) - 4.3 * math.cos(2.0),
-                     3.5 * math.sin(1.0) - 4.3 * math.sin(2.0)])
+    qd0 = jnp.array(
+        [
+            3.5 * math.cos(1.0),
+            3.5 * math.sin(1.0),
+            3.5 * math.cos(1.0) - 4.3 * math.cos(2.0),
+            3.5 * math.sin(1.0) - 4.3 * math.sin(2.0),
+        ]
+    )
     with pytest.raises(Exception, match="did not converge.*reduce dt"):
         simulate_variational(system, q0, qd0, dt=0.2, num_steps=20)
     traj = simulate_variational(system, q0, qd0, dt=0.2, num_steps=20, throw=False)
@@ -373,13 +444,10 @@ def test_unsupported_and_invalid_input():
     with pytest.raises(NotImplementedError, match="holonomic constraints only"):
         simulate_variational(rolling, q0, qd0, dt=0.01, num_steps=10, args=PENDULUM_ARGS)
     with pytest.raises(ValueError, match="multiple of save_every"):
-        simulate_variational(PENDULUM, q0, qd0, dt=0.01, num_steps=10, save_every=3,
-                             args=PENDULUM_ARGS)
+        simulate_variational(PENDULUM, q0, qd0, dt=0.01, num_steps=10, save_every=3, args=PENDULUM_ARGS)
     with pytest.raises(ValueError, match="method"):
-        simulate_variational(PENDULUM, q0, qd0, dt=0.01, num_steps=10, method="verlet",
-                             args=PENDULUM_ARGS)
+        simulate_variational(PENDULUM, q0, qd0, dt=0.01, num_steps=10, method="verlet", args=PENDULUM_ARGS)
     with pytest.raises(ValueError, match="order"):
-        simulate_variational(PENDULUM, q0, qd0, dt=0.01, num_steps=10, order=3,
-                             args=PENDULUM_ARGS)
+        simulate_variational(PENDULUM, q0, qd0, dt=0.01, num_steps=10, order=3, args=PENDULUM_ARGS)
     with pytest.raises(ValueError, match="off the constraint manifold"):
         simulate_variational(PENDULUM, q0 * 1.01, qd0, dt=0.01, num_steps=10, args=PENDULUM_ARGS)

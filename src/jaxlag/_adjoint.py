@@ -93,11 +93,15 @@ def trace_outputs(run: Callable[[Any, Any], Any], inputs: Any, adjoint) -> tuple
     try:
         # Weak types kept: the jitted solver traced here is then found in JAX's tracing cache
         # when the forward rule traces it with the actual inputs.
-        spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x),
-                                                           weak_type=jax.typeof(x).weak_type),
-                            dynamic)
-        closed, shapes = jax.make_jaxpr(lambda d: run(eqx.combine(d, static), adjoint),
-                                        return_shape=True)(spec)
+        spec = jax.tree.map(
+            lambda x: jax.ShapeDtypeStruct(
+                jnp.shape(x), jnp.result_type(x), weak_type=jax.typeof(x).weak_type
+            ),
+            dynamic,
+        )
+        closed, shapes = jax.make_jaxpr(lambda d: run(eqx.combine(d, static), adjoint), return_shape=True)(
+            spec
+        )
     except Exception:  # noqa: BLE001 - conservative: the general path is always correct
         return True, None
     return any(isinstance(c, jax.core.Tracer) for c in closed.consts), shapes
@@ -110,8 +114,7 @@ def captures_traced_values(probe: Callable[[Any], Any], inputs: Any) -> bool:
     Anything that prevents the analysis counts as "yes"."""
     dynamic, static = eqx.partition(inputs, eqx.is_array)
     try:
-        spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)),
-                            dynamic)
+        spec = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)), dynamic)
         closed = jax.make_jaxpr(lambda d: probe(eqx.combine(d, static)))(spec)
     except Exception:  # noqa: BLE001 - conservative: the general path is always correct
         return True
@@ -149,7 +152,7 @@ def _contract(sensitivities, cotangents, sizes, shapes):
     grads, offset = [], 0
     for (shape, dtype), size in zip(shapes, sizes):
         if size and total is not None:
-            grads.append(total[offset:offset + size].reshape(shape).astype(dtype))
+            grads.append(total[offset : offset + size].reshape(shape).astype(dtype))
         else:
             grads.append(jnp.zeros(shape, dtype))
         offset += size
@@ -164,8 +167,12 @@ def _push(run, static, adjoint, primals, tangents, axes, structure):
     :func:`trace_outputs`, so JAX's tracing cache serves it."""
 
     def one(tangent_leaves):
-        return jax.jvp(lambda v: _split_inexact(run(eqx.combine(v, static), adjoint)), (primals,),
-                       (jax.tree.unflatten(structure, tangent_leaves),), has_aux=True)
+        return jax.jvp(
+            lambda v: _split_inexact(run(eqx.combine(v, static), adjoint)),
+            (primals,),
+            (jax.tree.unflatten(structure, tangent_leaves),),
+            has_aux=True,
+        )
 
     if all(np.shape(t)[0] == 1 for t, axis in zip(tangents, axes) if axis is not None):
         # One direction: a plain jvp (a size-1 vmap would batch the whole solver loop, which
@@ -184,10 +191,14 @@ def _pushes_itself(run, inputs, sizes) -> bool:
     return decides is not None and decides(inputs, [size > 0 for size in sizes])
 
 
-def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
-                                    choice: ForwardSensitivities, output_shapes: Any = None,
-                                    finish: Callable[[Any], Any] | None = None,
-                                    prepare: Callable[[Any], Any] | None = None) -> Any:
+def call_with_forward_sensitivities(
+    run: Callable[[Any, Any], Any],
+    inputs: Any,
+    choice: ForwardSensitivities,
+    output_shapes: Any = None,
+    finish: Callable[[Any], Any] | None = None,
+    prepare: Callable[[Any], Any] | None = None,
+) -> Any:
     """``run(inputs, adjoint)``, reverse-differentiated as :class:`ForwardSensitivities` says.
 
     ``inputs`` is any pytree; its floating-point array leaves are the differentiable inputs.
@@ -229,12 +240,15 @@ def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
         leaves = jax.tree.leaves(values, is_leaf=lambda x: hasattr(x, "perturbed"))
         # Primals of Python scalars arrive as JAX's typed scalars, which jit would treat as
         # static (hashed) values: as arrays (weak type kept) they reuse the compiled program.
-        primals = jax.tree.unflatten(structure, [
-            leaf.value if isinstance(leaf.value, (jax.Array, np.ndarray)) else jnp.asarray(leaf.value)
-            for leaf in leaves])
+        primals = jax.tree.unflatten(
+            structure,
+            [
+                leaf.value if isinstance(leaf.value, (jax.Array, np.ndarray)) else jnp.asarray(leaf.value)
+                for leaf in leaves
+            ],
+        )
         primals = prepared(primals)
-        sizes = [math.prod(shape) if leaf.perturbed else 0
-                 for leaf, (shape, _) in zip(leaves, shapes)]
+        sizes = [math.prod(shape) if leaf.perturbed else 0 for leaf, (shape, _) in zip(leaves, shapes)]
         k = sum(sizes)
         if 0 < k <= choice.max_tangents and _pushes_itself(run, inputs, sizes):
             # One solver loop for the state and its k tangents (jaxlag.tangent_solve), not the
@@ -265,14 +279,14 @@ def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
             inexact, rest = finished(*evaluate(primals, choice.inner))
             return eqx.combine(inexact, rest), (None, None)
         if k > choice.max_tangents or k * out_bytes > choice.max_bytes:
-            inexact, pullback, rest = jax.vjp(lambda v: evaluate(v, choice.fallback), primals,
-                                              has_aux=True)
+            inexact, pullback, rest = jax.vjp(lambda v: evaluate(v, choice.fallback), primals, has_aux=True)
             inexact, rest = finished(inexact, rest)
             return eqx.combine(inexact, rest), (None, pullback)
 
         tangents, axes = _unit_tangents(shapes, sizes, k)
-        inexact, sensitivities, rest = _push(run, static, choice.inner, primals, tangents,
-                                             tuple(axes), structure)
+        inexact, sensitivities, rest = _push(
+            run, static, choice.inner, primals, tangents, tuple(axes), structure
+        )
         inexact, rest = finished(inexact, rest)
         return eqx.combine(inexact, rest), (sensitivities, None)
 
@@ -280,19 +294,22 @@ def call_with_forward_sensitivities(run: Callable[[Any, Any], Any], inputs: Any,
         sensitivities, pullback = residuals
         # Cotangents of the floating-point outputs in output order (integer outputs have float0
         # cotangents, symbolic or not, and are skipped).
-        cotangents = [c for c in jax.tree.leaves(cotangent, is_leaf=_is_symbolic_zero)
-                      if _inexact_cotangent(c)]
+        cotangents = [
+            c for c in jax.tree.leaves(cotangent, is_leaf=_is_symbolic_zero) if _inexact_cotangent(c)
+        ]
         if pullback is not None:
-            dense = [jnp.zeros(c.aval.shape, c.aval.dtype) if _is_symbolic_zero(c) else c
-                     for c in cotangents]
+            dense = [jnp.zeros(c.aval.shape, c.aval.dtype) if _is_symbolic_zero(c) else c for c in cotangents]
             (grads,) = pullback(jax.tree.unflatten(decided["outputs"], dense))
             return (grads,)
         if sensitivities is None:
             grads = [jnp.zeros(shape, dtype) for shape, dtype in shapes]
         else:
-            grads = _contract(jax.tree.leaves(sensitivities),
-                              [None if _is_symbolic_zero(c) else c for c in cotangents],
-                              tuple(decided["sizes"]), tuple(shapes))
+            grads = _contract(
+                jax.tree.leaves(sensitivities),
+                [None if _is_symbolic_zero(c) else c for c in cotangents],
+                tuple(decided["sizes"]),
+                tuple(shapes),
+            )
         return (jax.tree.unflatten(structure, grads),)
 
     call.defvjp(forward, backward, symbolic_zeros=True)

@@ -118,12 +118,15 @@ def _check_entries(path: Path, uid: int, max_entry_bytes: int) -> None:
                 os.unlink(where)
                 continue
             if info.st_size > max_entry_bytes:
-                raise _refuse(where, f"the cache entry has {info.st_size} bytes, more than "
-                                     f"max_entry_bytes={max_entry_bytes}")
+                raise _refuse(
+                    where,
+                    f"the cache entry has {info.st_size} bytes, more than max_entry_bytes={max_entry_bytes}",
+                )
 
 
-def checked_cache_directory(path: str | os.PathLike | None = None, *,
-                            max_entry_bytes: int = DEFAULT_MAX_ENTRY_BYTES) -> Path:
+def checked_cache_directory(
+    path: str | os.PathLike | None = None, *, max_entry_bytes: int = DEFAULT_MAX_ENTRY_BYTES
+) -> Path:
     """Create (mode 0700) or check the cache directory and return its absolute path; see the
     module docstring for the rules. Raises :class:`UnsafeCacheDirectory`."""
     directory = default_cache_directory() if path is None else Path(path)
@@ -146,9 +149,12 @@ def checked_cache_directory(path: str | os.PathLike | None = None, *,
     return directory
 
 
-def enable_compilation_cache(path: str | os.PathLike | None = None, *,
-                             max_entry_bytes: int = DEFAULT_MAX_ENTRY_BYTES,
-                             min_compile_time_secs: float = 0.0) -> Path:
+def enable_compilation_cache(
+    path: str | os.PathLike | None = None,
+    *,
+    max_entry_bytes: int = DEFAULT_MAX_ENTRY_BYTES,
+    min_compile_time_secs: float = 0.0,
+) -> Path:
     """Turn on JAX's persistent compilation cache in a checked directory; returns it.
 
     **Arguments:**

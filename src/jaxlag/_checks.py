@@ -25,9 +25,9 @@ from ._tolerances import (
     CONSTRAINT_RCOND,
     MASS_RCOND,
     default_constraint_tolerance,
-    default_solver_tolerance,
     rcond,
 )
+
 
 def initial_activity(system, q, t, args, tolerance):
     """Holonomic activity mask at the start: unilateral constraints act only where ``f_i ≈ 0``."""
@@ -61,8 +61,9 @@ def _diagnostics_on_host(system, q, qd, t, args, tolerance):
     values = jax.device_get(values)
     rows = values["rows"]
     values["eigenvalues"] = np.linalg.eigvalsh(values["mass"])
-    values["singular_values"] = (np.linalg.svd(rows, compute_uv=False) if rows.shape[0] > 0
-                                 else np.ones((1,), rows.dtype))
+    values["singular_values"] = (
+        np.linalg.svd(rows, compute_uv=False) if rows.shape[0] > 0 else np.ones((1,), rows.dtype)
+    )
     return values, _failures(values, system.least_squares, tolerance, np)
 
 
@@ -91,8 +92,9 @@ def _diagnostic_values(system, q, qd, t, args, tolerance, spectra=True):
         weighted = rows * row_weight[:, None]
         spectra = dict(
             eigenvalues=jnp.linalg.eigvalsh(mass),
-            singular_values=(jnp.linalg.svd(weighted, compute_uv=False) if rows.shape[0] > 0
-                             else jnp.ones((1,), q.dtype)),
+            singular_values=(
+                jnp.linalg.svd(weighted, compute_uv=False) if rows.shape[0] > 0 else jnp.ones((1,), q.dtype)
+            ),
         )
     else:
         spectra = {}
@@ -100,8 +102,7 @@ def _diagnostic_values(system, q, qd, t, args, tolerance, spectra=True):
         **spectra,
         finite=jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(qd)),
         args_finite=jnp.stack(parameters) if parameters else jnp.ones((0,), bool),
-        constraints_finite=jnp.all(jnp.isfinite(f)) & jnp.all(jnp.isfinite(f_dot))
-        & jnp.all(jnp.isfinite(g)),
+        constraints_finite=jnp.all(jnp.isfinite(f)) & jnp.all(jnp.isfinite(f_dot)) & jnp.all(jnp.isfinite(g)),
         not_diagonal=not_diagonal,
         mass=mass,
         f=jnp.where(active, f, 0.0),
@@ -116,8 +117,9 @@ def _diagnostic_values(system, q, qd, t, args, tolerance, spectra=True):
 
 
 def _is_inexact(x) -> bool:
-    return (isinstance(x, (jax.Array, np.ndarray, np.generic, float, complex))
-            and jnp.issubdtype(jnp.result_type(x), jnp.inexact))
+    return isinstance(x, (jax.Array, np.ndarray, np.generic, float, complex)) and jnp.issubdtype(
+        jnp.result_type(x), jnp.inexact
+    )
 
 
 def _inexact_leaves(tree):
@@ -125,8 +127,11 @@ def _inexact_leaves(tree):
 
 
 def _inexact_names(tree) -> list[str]:
-    return [f"args{jax.tree_util.keystr(path)}" for path, x in
-            jax.tree_util.tree_leaves_with_path(tree) if _is_inexact(x)]
+    return [
+        f"args{jax.tree_util.keystr(path)}"
+        for path, x in jax.tree_util.tree_leaves_with_path(tree)
+        if _is_inexact(x)
+    ]
 
 
 def _failures(d, least_squares: bool, tolerance: float, xp=jnp):
@@ -134,8 +139,7 @@ def _failures(d, least_squares: bool, tolerance: float, xp=jnp):
     ``numpy`` on the host)."""
     eig = d["eigenvalues"]
     sv = d["singular_values"]
-    residual = xp.concatenate([xp.abs(d["f"]), xp.abs(d["f_dot"]), xp.abs(d["g"]),
-                               xp.zeros((1,), eig.dtype)])
+    residual = xp.concatenate([xp.abs(d["f"]), xp.abs(d["f_dot"]), xp.abs(d["g"]), xp.zeros((1,), eig.dtype)])
     rank = xp.sum(sv > rcond(CONSTRAINT_RCOND, sv.dtype) * sv[0])
     return dict(
         nonfinite=~d["finite"],
@@ -143,9 +147,7 @@ def _failures(d, least_squares: bool, tolerance: float, xp=jnp):
         nonfinite_constraints=~d["constraints_finite"],
         not_diagonal=d["not_diagonal"],
         mass=~(eig[0] > rcond(MASS_RCOND, eig.dtype) * xp.max(xp.abs(eig))),
-        rank=xp.asarray(False)
-        if least_squares or d["rows"].shape[0] == 0
-        else rank < d["num_active"],
+        rank=xp.asarray(False) if least_squares or d["rows"].shape[0] == 0 else rank < d["num_active"],
         off_manifold=~(xp.max(residual) <= tolerance),
         violated=d["violated"],
         wrong_sign=d["wrong_sign"],
@@ -176,9 +178,11 @@ _POINTER = (
 def _tolerance_text(tolerance: float, dtype) -> str:
     text = f"{tolerance:g}"
     if np.dtype(dtype) != np.float64:
-        text += (f" (the state is {np.dtype(dtype).name}: jax_enable_x64 is off; enable it with "
-                 "jax.config.update('jax_enable_x64', True), or pass a constraint_tolerance "
-                 "suited to single precision)")
+        text += (
+            f" (the state is {np.dtype(dtype).name}: jax_enable_x64 is off; enable it with "
+            "jax.config.update('jax_enable_x64', True), or pass a constraint_tolerance "
+            "suited to single precision)"
+        )
     return text
 
 
@@ -198,8 +202,10 @@ def _initial_message(d, fail, static: _Static, where: str = "at the initial stat
         return f"The initial state is not finite: q0={np.asarray(d['q'])}, qd0={np.asarray(d['qd'])}."
     if bool(fail.get("nonfinite_args", False)):
         bad = [name for name, ok in zip(static.arg_names, np.asarray(d["args_finite"])) if not ok]
-        return (f"A parameter in args is not finite (NaN or inf): {', '.join(bad)}. Every "
-                "floating-point leaf of args must be finite.")
+        return (
+            f"A parameter in args is not finite (NaN or inf): {', '.join(bad)}. Every "
+            "floating-point leaf of args must be finite."
+        )
     if bool(fail.get("mass", False)):
         return (
             f"The mass matrix M = ∂²L/∂q̇² is singular or not positive definite {where} "
@@ -220,8 +226,11 @@ def _initial_message(d, fail, static: _Static, where: str = "at the initial stat
         )
     if bool(fail.get("rank", False)):
         m_h = d["f"].shape[0]
-        names = (_dependent_rows(np.asarray(d["rows"]), m_h) if "rows" in d
-                 else ["(call simulate outside jit to see which)"])
+        names = (
+            _dependent_rows(np.asarray(d["rows"]), m_h)
+            if "rows" in d
+            else ["(call simulate outside jit to see which)"]
+        )
         return (
             f"The constraints are redundant or conflicting {where}: the constraint "
             f"Jacobian [J; A] (singular values {np.asarray(d['singular_values'])}) is rank "
@@ -329,8 +338,10 @@ def _state_message(what: str, static: _Static, payload) -> str | None:
     bad_i, d_i, fail_i = member((bad, d, fail), index)
     text = _initial_message(d_i, fail_i, static, where="at this state")
     if text is None:
-        text = ("L, M and the constraints are regular here; a force, dissipation or constraint "
-                "function returns NaN or inf, or the state is outside their domain.")
+        text = (
+            "L, M and the constraints are regular here; a force, dissipation or constraint "
+            "function returns NaN or inf, or the state is outside their domain."
+        )
     state = f"q = {np.asarray(d_i['q'])}, q̇ = {np.asarray(d_i['qd'])}"
     return batch_prefix(index, bad, members) + f"System.{what} is not finite at {state}: {text}"
 

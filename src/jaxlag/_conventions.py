@@ -39,9 +39,7 @@ def _parse_signature(
         # Builtins and some C callables have no signature: assume the bare state form.
         return ()
     positional = [
-        p
-        for p in signature.parameters.values()
-        if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
+        p for p in signature.parameters.values() if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
     ]
     has_var_positional = any(p.kind == p.VAR_POSITIONAL for p in signature.parameters.values())
     has_var_keyword = any(p.kind == p.VAR_KEYWORD for p in signature.parameters.values())
@@ -172,8 +170,7 @@ def as_array_leaves(tree):
     def convert(x):
         if isinstance(x, (float, complex, np.ndarray, np.floating)):
             return as_jax_array(x, np.result_type(x))  # converted on the host, no compilation
-        if (isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.inexact)
-                and jax.typeof(x).weak_type):
+        if isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.inexact) and jax.typeof(x).weak_type:
             return jax.lax.convert_element_type(x, x.dtype)
         return x
 

@@ -79,8 +79,9 @@ class Failure(eqx.Module):
     max_segments: Any = eqx.field(static=True, default=None)
 
 
-def from_solution(solution, t0, t1, q0, qd0, saved_t=None, saved_q=None, saved_qd=None,
-                  max_steps=None, max_segments=None) -> Failure:
+def from_solution(
+    solution, t0, t1, q0, qd0, saved_t=None, saved_q=None, saved_qd=None, max_steps=None, max_segments=None
+) -> Failure:
     """The :class:`Failure` of one ``diffeqsolve`` (run with ``throw=False`` and the guard's
     state saved; a ``StepTo`` controller has none and is judged by its saved states)."""
     state = solution.controller_state
@@ -95,16 +96,17 @@ def from_solution(solution, t0, t1, q0, qd0, saved_t=None, saved_q=None, saved_q
         guarded = nonfinite = jnp.asarray(False)
     max_reached = result == diffrax.RESULTS.max_steps_reached
     code = jnp.where(
-        ok, NONE,
-        jnp.where(guarded, jnp.where(nonfinite, NONFINITE, COLLAPSED),
-                  jnp.where(max_reached, MAX_STEPS, SOLVER)),
+        ok,
+        NONE,
+        jnp.where(
+            guarded, jnp.where(nonfinite, NONFINITE, COLLAPSED), jnp.where(max_reached, MAX_STEPS, SOLVER)
+        ),
     )
     if saved_q is not None:
         # Non-finite saved states of a solve that reports success (StepTo, a projection that
         # failed at a save time). Saves that were not reached (terminal event) hold inf in t.
         reached = jnp.isfinite(saved_t)
-        bad = reached & ~(jnp.all(jnp.isfinite(saved_q), axis=-1)
-                          & jnp.all(jnp.isfinite(saved_qd), axis=-1))
+        bad = reached & ~(jnp.all(jnp.isfinite(saved_q), axis=-1) & jnp.all(jnp.isfinite(saved_qd), axis=-1))
         first = jnp.argmax(bad)
         late = (code == NONE) & jnp.any(bad)
         code = jnp.where(late, NONFINITE, code)
@@ -113,10 +115,16 @@ def from_solution(solution, t0, t1, q0, qd0, saved_t=None, saved_q=None, saved_q
         q = jnp.where(late, jnp.where(first > 0, saved_q[before], q0), q)
         qd = jnp.where(late, jnp.where(first > 0, saved_qd[before], qd0), qd)
     return Failure(
-        code=jnp.asarray(code, jnp.int32), t=jnp.asarray(t, dtype), dt=jnp.asarray(dt, dtype),
-        q=q, qd=qd, t0=jnp.asarray(t0, dtype), t1=jnp.asarray(t1, dtype),
+        code=jnp.asarray(code, jnp.int32),
+        t=jnp.asarray(t, dtype),
+        dt=jnp.asarray(dt, dtype),
+        q=q,
+        qd=qd,
+        t0=jnp.asarray(t0, dtype),
+        t1=jnp.asarray(t1, dtype),
         num_steps=jnp.asarray(solution.stats["num_steps"], jnp.int32),
-        result=jnp.asarray(result._value, jnp.int32), max_steps=max_steps,
+        result=jnp.asarray(result._value, jnp.int32),
+        max_steps=max_steps,
         max_segments=max_segments,
     )
 
@@ -133,6 +141,7 @@ def first_failure(earlier: Failure, later: Failure) -> Failure:
 @compilation.filter_jit
 def _probe(system, q, qd, t, dt, args):
     """Which quantity is non-finite at ``(q, q̇, t)`` and one Euler step of size ``dt`` later."""
+
     def at(q, qd, t):
         finite = lambda x: jnp.all(jnp.isfinite(x))  # noqa: E731
         L = system.lagrangian(q, qd, t=t, args=args)
@@ -145,8 +154,13 @@ def _probe(system, q, qd, t, dt, args):
             constraints_ok = jnp.asarray(True)
             qdd = unconstrained_accelerations(system, q, qd, t, args)
         eig = jnp.linalg.eigvalsh(jnp.where(jnp.isfinite(M), M, 0.0))
-        flags = dict(state=finite(q) & finite(qd), lagrangian=finite(L), mass_matrix=finite(M),
-                     constraints=constraints_ok, accelerations=finite(qdd))
+        flags = dict(
+            state=finite(q) & finite(qd),
+            lagrangian=finite(L),
+            mass_matrix=finite(M),
+            constraints=constraints_ok,
+            accelerations=finite(qdd),
+        )
         return flags, eig, qdd
 
     flags, eig, qdd = at(q, qd, t)
@@ -163,7 +177,7 @@ _CAUSES = {
     "mass_matrix": "the mass matrix M = ∂²L/∂q̇²",
     "constraints": "the constraint functions (f, ḟ or g)",
     "accelerations": "the accelerations q̈ (L, M and the constraints are finite: the solve "
-                     "M q̈ = F + Jᵀλ failed, or a force or dissipation function returned NaN)",
+    "M q̈ = F + Jᵀλ failed, or a force or dissipation function returned NaN)",
 }
 
 
@@ -181,9 +195,11 @@ def _singular(eig) -> bool:
 def _x64_hint(dtype) -> str:
     if np.dtype(dtype) == np.float64:
         return ""
-    return (f" (The simulation runs in {np.dtype(dtype).name}: jax_enable_x64 is off. Mechanics "
-            "in single precision keeps ~7 digits; enable float64 with "
-            "jax.config.update('jax_enable_x64', True) before creating arrays.)")
+    return (
+        f" (The simulation runs in {np.dtype(dtype).name}: jax_enable_x64 is off. Mechanics "
+        "in single precision keeps ~7 digits; enable float64 with "
+        "jax.config.update('jax_enable_x64', True) before creating arrays.)"
+    )
 
 
 def describe(failure: Failure, system=None, args=None) -> str:
@@ -197,35 +213,44 @@ def describe(failure: Failure, system=None, args=None) -> str:
     if code == MAX_STEPS:
         done = (t - t0) / (t1 - t0) if t1 != t0 else 0.0
         steps = int(failure.num_steps)
-        msg = (f"The simulation reached max_steps = {failure.max_steps or steps} steps {where}, "
-               f"{100 * done:.1f}% of the way")
+        msg = (
+            f"The simulation reached max_steps = {failure.max_steps or steps} steps {where}, "
+            f"{100 * done:.1f}% of the way"
+        )
         if done > 1e-3:
             needed = int(np.ceil(steps / done))
             suggestion = int(2 ** np.ceil(np.log2(needed * 1.2)))
-            msg += (f": at this rate about {needed:,} steps are needed. Pass max_steps="
-                    f"{suggestion} (or more), or loosen the step-size controller's rtol/atol "
-                    "(default 1e-10), or use a constant step size.")
+            msg += (
+                f": at this rate about {needed:,} steps are needed. Pass max_steps="
+                f"{suggestion} (or more), or loosen the step-size controller's rtol/atol "
+                "(default 1e-10), or use a constant step size."
+            )
         else:
-            msg += (f"; the last step size was {dt:.3g}. The steps are far too small for the "
-                    "interval: the system may be stiff or singular near this state "
-                    f"(q = {_fmt(q)}, q̇ = {_fmt(qd)}).")
+            msg += (
+                f"; the last step size was {dt:.3g}. The steps are far too small for the "
+                "interval: the system may be stiff or singular near this state "
+                f"(q = {_fmt(q)}, q̇ = {_fmt(qd)})."
+            )
         return msg + hint
     if code == MAX_SEGMENTS:
-        return (f"The simulation needed more than max_segments = {failure.max_segments} "
-                "segments (releases, contacts and events) before the end time; it reached "
-                f"t = {t:.10g} of [{t0:g}, {t1:g}]. Increase max_segments.")
+        return (
+            f"The simulation needed more than max_segments = {failure.max_segments} "
+            "segments (releases, contacts and events) before the end time; it reached "
+            f"t = {t:.10g} of [{t0:g}, {t1:g}]. Increase max_segments."
+        )
     if code == SOLVER:
         text = _result_text(int(failure.result))
         return f"The diffrax solver failed {where}: {text}" + hint
     state = f"q = {_fmt(q)}, q̇ = {_fmt(qd)}"
     if code == NONFINITE:
         msg = f"The equations of motion became non-finite (NaN or inf) {where}, from {state}"
-        msg += (f"; no step, down to dt = {dt:.3g}, gave a finite state." if np.isfinite(dt)
-                else ".")
+        msg += f"; no step, down to dt = {dt:.3g}, gave a finite state." if np.isfinite(dt) else "."
     else:  # COLLAPSED
-        msg = (f"The step size collapsed to dt = {dt:.3g} {where}: every step from {state} "
-               "was rejected although finite. The solution appears to reach a singularity "
-               "here (a velocity or acceleration blowing up, a mass matrix becoming singular).")
+        msg = (
+            f"The step size collapsed to dt = {dt:.3g} {where}: every step from {state} "
+            "was rejected although finite. The solution appears to reach a singularity "
+            "here (a velocity or acceleration blowing up, a mass matrix becoming singular)."
+        )
     if system is not None:
         msg += " " + _diagnosis(system, failure, args)
     return msg + hint
@@ -241,7 +266,8 @@ def _result_text(value: int) -> str:
 def _diagnosis(system, failure: Failure, args) -> str:
     try:
         (flags, eig, qdd), (flags1, eig1, q1, qd1) = jax.device_get(
-            _probe(system, failure.q, failure.qd, failure.t, failure.dt, args))
+            _probe(system, failure.q, failure.qd, failure.t, failure.dt, args)
+        )
     except Exception as error:  # noqa: BLE001 - the diagnosis must not hide the failure
         return f"(Evaluating the equations of motion there raised {type(error).__name__}: {error}.)"
     # The first non-finite quantity in the order of the computation (state, L, M, f, q̈).
@@ -252,15 +278,19 @@ def _diagnosis(system, failure: Failure, args) -> str:
                 text += f" M is singular there (eigenvalues {_fmt(eig)})."
             return text
     if _singular(eig):
-        return (f"There M = ∂²L/∂q̇² is singular (eigenvalues {_fmt(eig)}): a coordinate "
-                "singularity or a degenerate Lagrangian.")
+        return (
+            f"There M = ∂²L/∂q̇² is singular (eigenvalues {_fmt(eig)}): a coordinate "
+            "singularity or a degenerate Lagrangian."
+        )
     text = f"There everything is finite (|q̈| = {np.max(np.abs(qdd)):.3g}, M eigenvalues {_fmt(eig)})"
     for name in _CAUSES:
         if not flags1[name]:
-            return (text + f"; one step dt further, at q = {_fmt(q1)}, {_CAUSES[name]} is "
-                    "non-finite: the motion leaves the region where the equations are defined "
-                    "(e.g. a fractional power or log of a negative number, a square root of a "
-                    "negative argument, a division by zero).")
+            return (
+                text + f"; one step dt further, at q = {_fmt(q1)}, {_CAUSES[name]} is "
+                "non-finite: the motion leaves the region where the equations are defined "
+                "(e.g. a fractional power or log of a negative number, a square root of a "
+                "negative argument, a division by zero)."
+            )
     if _singular(eig1):
         return text + f"; one step dt further M is singular (eigenvalues {_fmt(eig1)})."
     return text + "."
@@ -291,8 +321,10 @@ def batch_prefix(index, flags, members) -> str:
     if not index:
         return ""
     where = ", ".join(str(i) for i in index)
-    return (f"{len(members)} of {np.asarray(flags).size} batch members failed (first: member "
-            f"[{where}]). Member [{where}]: ")
+    return (
+        f"{len(members)} of {np.asarray(flags).size} batch members failed (first: member "
+        f"[{where}]). Member [{where}]: "
+    )
 
 
 def message(failure: Failure, system=None, args=None, *, args_batched=False) -> str | None:
@@ -310,8 +342,10 @@ def message(failure: Failure, system=None, args=None, *, args_batched=False) -> 
     member_args = member(args, index) if (index and args is not None) else args
     text = describe(member(failure, index), system, member_args)
     if index:
-        text = (batch_prefix(index, flags, members) + text + " Pass throw=False to keep the "
-                "other members' results (traj.failure.code says which failed).")
+        text = (
+            batch_prefix(index, flags, members) + text + " Pass throw=False to keep the "
+            "other members' results (traj.failure.code says which failed)."
+        )
     return text
 
 
@@ -352,8 +386,13 @@ def _report(report, payload, value):
 @ft.partial(jax.custom_jvp, nondiff_argnums=(2,))
 def _checked(x, failed, report, payload):
     def fail(value):
-        return jax.pure_callback(ft.partial(_report, report), jax.ShapeDtypeStruct(value.shape,
-                                 value.dtype), payload, value, vmap_method="expand_dims")
+        return jax.pure_callback(
+            ft.partial(_report, report),
+            jax.ShapeDtypeStruct(value.shape, value.dtype),
+            payload,
+            value,
+            vmap_method="expand_dims",
+        )
 
     return jax.lax.cond(eqxi.unvmap_any(failed), fail, lambda value: value, x)
 

@@ -33,7 +33,7 @@ import optimistix as optx
 
 from . import _compile as compilation
 from . import _errors as failures
-from ._solver.guard import guard, saving_guard_state
+from ._solver.guard import guard
 from ._checks import initial_activity, validate_initial_state
 from ._mechanics.constant_mass import with_constant_mass
 from ._mechanics.constraints import holonomic_residual
@@ -44,8 +44,7 @@ from ._solver.step_once import StepOnce
 from ._vector_field import EquationsOfMotion
 
 _NO_EVENT, _END, _RELEASE, _CONTACT, _USER = -1, 0, 1, 2, 3
-KIND_NAMES = {_NO_EVENT: "none", _END: "end", _RELEASE: "release", _CONTACT: "contact",
-              _USER: "user"}
+KIND_NAMES = {_NO_EVENT: "none", _END: "end", _RELEASE: "release", _CONTACT: "contact", _USER: "user"}
 
 
 class Event(eqx.Module):
@@ -165,9 +164,28 @@ def _first(mask):
 
 
 @compilation.filter_jit
-def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_controller,
-                   max_steps, adjoint, progress_meter, baumgarte, projection, events,
-                   max_segments, root_finder, check, tolerance):
+def solve_segments(
+    system,
+    q0,
+    qd0,
+    t0,
+    t1,
+    ts,
+    dt0,
+    args,
+    solver,
+    stepsize_controller,
+    max_steps,
+    adjoint,
+    progress_meter,
+    baumgarte,
+    projection,
+    events,
+    max_segments,
+    root_finder,
+    check,
+    tolerance,
+):
     """Integrate across releases, contacts and user events; see the module docstring."""
     system.check(q0, qd0, t0, args)
     if check:
@@ -187,8 +205,7 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
         return accelerations_and_multipliers(system, q, qd, t, args, active=active)[1]
 
     def run_segment(carry, _):
-        (t_s, q, qd, active, done, locks, out_q, out_qd, out_active, filled, count,
-         failure) = carry
+        (t_s, q, qd, active, done, locks, out_q, out_qd, out_active, filled, count, failure) = carry
         segment = _Segment(system, tuple(events), unilateral, active, t_s, locks)
         this_solver = stages_for_adjoint(solver, adjoint)  # diffrax does not see it in StepOnce
         if projection is not None:
@@ -204,8 +221,7 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
             (q, qd),
             args,
             saveat=diffrax.SaveAt(
-                subs=[diffrax.SubSaveAt(ts=jnp.clip(ts, t_s, t1)),
-                      diffrax.SubSaveAt(t1=True)],
+                subs=[diffrax.SubSaveAt(ts=jnp.clip(ts, t_s, t1)), diffrax.SubSaveAt(t1=True)],
                 controller_state=True,
             ),
             stepsize_controller=controller,
@@ -218,8 +234,9 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
         (saved_q, saved_qd), (final_q, final_qd) = solution.ys
         t_e = solution.ts[1][0]
         q_e, qd_e = final_q[0], final_qd[0]
-        this = failures.from_solution(solution, t_s, t1, q, qd, max_steps=max_steps,
-                                      max_segments=max_segments)
+        this = failures.from_solution(
+            solution, t_s, t1, q, qd, max_steps=max_steps, max_segments=max_segments
+        )
         this = eqx.tree_at(lambda f: f.code, this, jnp.where(done, failures.NONE, this.code))
         failure = failures.first_failure(failure, this)
         # A failed segment ends the simulation: its end state is not a state of the motion.
@@ -274,44 +291,78 @@ def solve_segments(system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_cont
         else:
             new_locks = locks
         kind = jnp.where(
-            done, _NO_EVENT,
-            jnp.where(released, _RELEASE, jnp.where(contacted, _CONTACT,
-                      jnp.where(any_user, _USER, _END))),
+            done,
+            _NO_EVENT,
+            jnp.where(released, _RELEASE, jnp.where(contacted, _CONTACT, jnp.where(any_user, _USER, _END))),
         )
-        index = jnp.where(released, release_index, jnp.where(contacted, contact_index,
-                          jnp.where(any_user, user_index, -1)))
+        index = jnp.where(
+            released, release_index, jnp.where(contacted, contact_index, jnp.where(any_user, user_index, -1))
+        )
         record = (jnp.where(done, jnp.inf, t_e), kind, index, q_next, qd_next, new_active)
         count = count + happened.astype(count.dtype)
         done = done | reached_end | stop | broken
         t_next = jnp.where(done, t1, t_e)
-        carry = (t_next, q_next, qd_next, new_active, done, new_locks, out_q, out_qd,
-                 out_active, filled, count, failure)
+        carry = (
+            t_next,
+            q_next,
+            qd_next,
+            new_active,
+            done,
+            new_locks,
+            out_q,
+            out_qd,
+            out_active,
+            filled,
+            count,
+            failure,
+        )
         return carry, record
 
     inf = jnp.full((num_saves, n), jnp.inf, dtype)
     none = failures.Failure(
-        code=jnp.asarray(failures.NONE, jnp.int32), t=jnp.asarray(t1, dtype),
-        dt=jnp.asarray(jnp.nan, dtype), q=q0, qd=qd0, t0=jnp.asarray(t0, dtype),
-        t1=jnp.asarray(t1, dtype), num_steps=jnp.asarray(0, jnp.int32),
-        result=jnp.asarray(0, jnp.int32), max_steps=max_steps, max_segments=max_segments,
+        code=jnp.asarray(failures.NONE, jnp.int32),
+        t=jnp.asarray(t1, dtype),
+        dt=jnp.asarray(jnp.nan, dtype),
+        q=q0,
+        qd=qd0,
+        t0=jnp.asarray(t0, dtype),
+        t1=jnp.asarray(t1, dtype),
+        num_steps=jnp.asarray(0, jnp.int32),
+        result=jnp.asarray(0, jnp.int32),
+        max_steps=max_steps,
+        max_segments=max_segments,
     )
-    carry0 = (t0, q0, qd0, active0, jnp.asarray(False), jnp.zeros((num_events,), dtype), inf, inf,
-              jnp.zeros((num_saves, m_h), bool), jnp.zeros((num_saves,), bool),
-              jnp.asarray(0, jnp.int32), none)
+    carry0 = (
+        t0,
+        q0,
+        qd0,
+        active0,
+        jnp.asarray(False),
+        jnp.zeros((num_events,), dtype),
+        inf,
+        inf,
+        jnp.zeros((num_saves, m_h), bool),
+        jnp.zeros((num_saves,), bool),
+        jnp.asarray(0, jnp.int32),
+        none,
+    )
     carry, records = jax.lax.scan(run_segment, carry0, None, length=max_segments)
     t_last, q_last, qd_last, _, done, _, out_q, out_qd, out_active, _, count, failure = carry
     out_of_segments = ~done & (failure.code == failures.NONE)
     failure = eqx.tree_at(
-        lambda f: (f.code, f.t, f.q, f.qd), failure,
-        (jnp.where(out_of_segments, failures.MAX_SEGMENTS, failure.code),
-         jnp.where(out_of_segments, t_last, failure.t),
-         jnp.where(out_of_segments, q_last, failure.q),
-         jnp.where(out_of_segments, qd_last, failure.qd)),
+        lambda f: (f.code, f.t, f.q, f.qd),
+        failure,
+        (
+            jnp.where(out_of_segments, failures.MAX_SEGMENTS, failure.code),
+            jnp.where(out_of_segments, t_last, failure.t),
+            jnp.where(out_of_segments, q_last, failure.q),
+            jnp.where(out_of_segments, qd_last, failure.qd),
+        ),
     )
     if projection is not None:
-        out_q, out_qd = jax.vmap(
-            lambda t, x, v, a: projection(system, x, v, t, args, a)
-        )(ts, out_q, out_qd, out_active)
+        out_q, out_qd = jax.vmap(lambda t, x, v, a: projection(system, x, v, t, args, a))(
+            ts, out_q, out_qd, out_active
+        )
         # Saves after a terminal event stay inf rather than turning into NaN.
         finite = jnp.isfinite(ts)[:, None] & jnp.all(jnp.isfinite(out_q), axis=1, keepdims=True)
         out_q = jnp.where(finite, out_q, jnp.inf)

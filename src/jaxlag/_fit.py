@@ -54,7 +54,6 @@ from ._stabilization import (
 )
 
 
-
 # ----------------------------------------------------------------------------- reparameterization
 class Identity(eqx.Module):
     """No reparameterization: ``θ = u``."""
@@ -171,7 +170,7 @@ class _ParamSpec(eqx.Module):
         out, i = {}, 0
         for k, shape in zip(self.keys, self.shapes):
             size = int(np.prod(shape))
-            out[k] = flat[i:i + size].reshape(shape)
+            out[k] = flat[i : i + size].reshape(shape)
             i += size
         return out
 
@@ -198,24 +197,26 @@ class _Model(eqx.Module):
         return {k: self.transforms.get(k, Identity()).to_physical(v) for k, v in params.items()}
 
     def unconstrained(self, physical):
-        return self.spec.ravel({k: self.transforms.get(k, Identity()).to_unconstrained(v)
-                                for k, v in physical.items()})
+        return self.spec.ravel(
+            {k: self.transforms.get(k, Identity()).to_unconstrained(v) for k, v in physical.items()}
+        )
 
     def split(self, states):
         """Free part of the segment states, and the fixed part."""
         if self.estimate_initial_state:
             return {"states": states}, None
         if self.segments > 1:
-            return {"later": (states[0][:, 1:], states[1][:, 1:])}, (states[0][:, :1],
-                                                                     states[1][:, :1])
+            return {"later": (states[0][:, 1:], states[1][:, 1:])}, (states[0][:, :1], states[1][:, :1])
         return {}, states
 
     def states(self, free, fixed_states):
         if self.estimate_initial_state:
             return free["states"]
         if self.segments > 1:
-            return (jnp.concatenate([fixed_states[0], free["later"][0]], axis=1),
-                    jnp.concatenate([fixed_states[1], free["later"][1]], axis=1))
+            return (
+                jnp.concatenate([fixed_states[0], free["later"][0]], axis=1),
+                jnp.concatenate([fixed_states[1], free["later"][1]], axis=1),
+            )
         return fixed_states
 
     def observations_of(self, params, data, states, adjoint, health=False):
@@ -230,8 +231,7 @@ class _Model(eqx.Module):
             residual = jnp.zeros((), q0.dtype)
             if self.system.is_constrained:
                 if health:
-                    q0, qd0, residual, _ = projection_with_residuals(self.system, q0, qd0, ts[0],
-                                                                     args)
+                    q0, qd0, residual, _ = projection_with_residuals(self.system, q0, qd0, ts[0], args)
                 else:
                     q0, qd0 = consistent_initial_state(self.system, q0, qd0, ts[0], args)
             if health:  # projected states are on the manifold: the failure record covers the rest
@@ -247,8 +247,7 @@ class _Model(eqx.Module):
             out = one_segment(data["ts_seg"][0, 0], states[0][0, 0], states[1][0, 0])
             y, q_end, qd_end, checks = jax.tree.map(lambda x: jnp.asarray(x)[None, None], out)
         else:
-            y, q_end, qd_end, checks = jax.vmap(jax.vmap(one_segment))(
-                data["ts_seg"], states[0], states[1])
+            y, q_end, qd_end, checks = jax.vmap(jax.vmap(one_segment))(data["ts_seg"], states[0], states[1])
         return (y, q_end, qd_end, checks) if health else (y, q_end, qd_end)
 
     def residuals(self, free, data, fixed_states, adjoint, health=False):
@@ -307,8 +306,7 @@ def _linearize(model, free, data, fixed_states):
     if flat.shape[0] == 1:  # one free variable: a plain jvp, no size-1 batch of the solver
         r, column, checks = push(jnp.ones_like(flat))
         return r, column[:, None], flat, checks
-    r, columns, checks = jax.vmap(push, out_axes=(None, 0, None))(
-        jnp.eye(flat.shape[0], dtype=flat.dtype))
+    r, columns, checks = jax.vmap(push, out_axes=(None, 0, None))(jnp.eye(flat.shape[0], dtype=flat.dtype))
     return r, columns.T, flat, checks
 
 
@@ -322,13 +320,17 @@ def _raise_for_health(model, checks, flat_params, data) -> None:
     tolerance = default_projection_tolerance(residual.dtype)
 
     def where(index):
-        return (f"experiment {index[0]}" if model.segments == 1
-                else f"experiment {index[0]}, shooting segment {index[1]}")
+        return (
+            f"experiment {index[0]}"
+            if model.segments == 1
+            else f"experiment {index[0]}, shooting segment {index[1]}"
+        )
 
     bad = np.argwhere(~(residual <= tolerance))
     if bad.size:
-        raise ValueError(f"jl.fit, {where(tuple(bad[0]))}: "
-                         + position_failure_message(tolerance, residual.dtype))
+        raise ValueError(
+            f"jl.fit, {where(tuple(bad[0]))}: " + position_failure_message(tolerance, residual.dtype)
+        )
     failed = np.argwhere(np.asarray(failure.code) != failures.NONE)
     if failed.size:
         index = tuple(failed[0])
@@ -337,7 +339,10 @@ def _raise_for_health(model, checks, flat_params, data) -> None:
         text = failures.describe(failures.member(failure, index), model.system, args)
         raise failures.SimulationError(
             f"jl.fit, {where(index)}, at parameters "
-            + ", ".join(f"{k}={np.asarray(v)}" for k, v in params.items()) + ": " + text)
+            + ", ".join(f"{k}={np.asarray(v)}" for k, v in params.items())
+            + ": "
+            + text
+        )
 
 
 def _linear_model(free, linearization):
@@ -374,7 +379,7 @@ def _ls_step(solver, free, state, linearization):
     trial = ravel_pytree(state.y_eval)[0] - y
     within = solver.norm(jnp.abs(trial) / (solver.atol + solver.rtol * jnp.abs(y))) < 1
     done = done | (within & (state.num_steps_since_acceptance > 0))
-    loss = 0.5 * jnp.sum(state.f_info.residual ** 2)
+    loss = 0.5 * jnp.sum(state.f_info.residual**2)
     return free, state, done, loss
 
 
@@ -382,9 +387,9 @@ def _ls_step(solver, free, state, linearization):
 def _value_and_grad(model, free, data, fixed_states):
     # The default adjoint: forward sensitivities for up to 10 free scalars, else checkpointed.
     adjoint = ForwardSensitivities()
-    return jax.value_and_grad(
-        lambda f: 0.5 * jnp.sum(model.residuals(f, data, fixed_states, adjoint) ** 2)
-    )(free)
+    return jax.value_and_grad(lambda f: 0.5 * jnp.sum(model.residuals(f, data, fixed_states, adjoint) ** 2))(
+        free
+    )
 
 
 @compilation.filter_jit
@@ -413,7 +418,8 @@ def _free_variables_jacobian(model, x, free_template):
 @compilation.filter_jit
 def _guess_states(system, ts, q0, qd0, args, starts, simulate_kwargs):
     guess = jax.vmap(lambda t, a, b: simulate(system, a, b, t, args=args, **dict(simulate_kwargs)))(
-        ts, q0, qd0)
+        ts, q0, qd0
+    )
     return guess.q[:, starts], guess.qd[:, starts]
 
 
@@ -483,18 +489,17 @@ def fit(
         raise ValueError(f"transforms name parameters that are not being fitted: {sorted(unknown)}.")
     observe = wrap_state_function(observe or _observe_coordinates, "observation function")
     simulate_kwargs = dict(simulate_kwargs or {})
-    simulate_kwargs.setdefault("stepsize_controller",
-                               diffrax.PIDController(rtol=1e-10, atol=1e-10))
+    simulate_kwargs.setdefault("stepsize_controller", diffrax.PIDController(rtol=1e-10, atol=1e-10))
     simulate_kwargs.setdefault("max_steps", 16384)
     real = jax.dtypes.canonicalize_dtype(float)  # on the host: no eager device conversions
-    fixed = {k: np.asarray(v, real) if isinstance(v, (int, float)) else v
-             for k, v in (args or {}).items()}
+    fixed = {k: np.asarray(v, real) if isinstance(v, (int, float)) else v for k, v in (args or {}).items()}
     params = {k: np.asarray(v, real) for k, v in params.items()}
 
     # Shapes of the observation function against the data.
     q_probe = batch.q0[0]
-    out = jax.eval_shape(lambda q, qd: observe(q, qd, t=batch.ts[0, 0], args={**fixed, **params}),
-                         q_probe, batch.qd0[0])
+    out = jax.eval_shape(
+        lambda q, qd: observe(q, qd, t=batch.ts[0, 0], args={**fixed, **params}), q_probe, batch.qd0[0]
+    )
     if out.shape != batch.observations.shape[2:]:
         raise ValueError(
             f"The observation function returns shape {out.shape} per time, but the observations "
@@ -505,16 +510,24 @@ def fit(
 
     spec = _ParamSpec(tuple(params), tuple(jnp.shape(v) for v in params.values()))
     kwargs_key = tuple(sorted(simulate_kwargs.items(), key=lambda kv: kv[0]))
-    model = _Model(system, observe, transforms, spec, int(shooting_segments),
-                   bool(estimate_initial_state), kwargs_key,
-                   tuple(int(i) for i in periodic_coordinates))
+    model = _Model(
+        system,
+        observe,
+        transforms,
+        spec,
+        int(shooting_segments),
+        bool(estimate_initial_state),
+        kwargs_key,
+        tuple(int(i) for i in periodic_coordinates),
+    )
     segments = model.segments
     ts_seg, starts = _segment_grid(batch.ts, segments)
     num_experiments = batch.ts.shape[0]
     if segment_states is None:
         if segments > 1:
-            segment_states = _guess_states(system, batch.ts, batch.q0, batch.qd0,
-                                           {**fixed, **params}, starts, kwargs_key)
+            segment_states = _guess_states(
+                system, batch.ts, batch.q0, batch.qd0, {**fixed, **params}, starts, kwargs_key
+            )
         else:
             segment_states = (batch.q0[:, None], batch.qd0[:, None])
     segment_states = tuple(np.asarray(s, batch.q0.dtype) for s in segment_states)
@@ -536,10 +549,14 @@ def fit(
     history, converged, steps = [], False, 0
     if isinstance(method, str):
         if method not in ("levenberg_marquardt", "gauss_newton"):
-            raise ValueError(f"method must be 'levenberg_marquardt', 'gauss_newton' or an optax "
-                             f"optimizer; got {method!r}.")
-        solver = (optx.LevenbergMarquardt(rtol=rtol, atol=atol) if method == "levenberg_marquardt"
-                  else optx.GaussNewton(rtol=rtol, atol=atol))
+            raise ValueError(
+                f"method must be 'levenberg_marquardt', 'gauss_newton' or an optax optimizer; got {method!r}."
+            )
+        solver = (
+            optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+            if method == "levenberg_marquardt"
+            else optx.GaussNewton(rtol=rtol, atol=atol)
+        )
         # Each step: the simulation's residuals and Jacobian at the trial point (one compiled
         # program), then the optimizer's step on that linearization (a small one).
         linearization = _residuals_and_jacobian(model, free, data, fixed_states)
@@ -570,8 +587,10 @@ def fit(
     if bar is not None:
         bar.close()
     if not np.isfinite(history[-1]):
-        raise FloatingPointError("The fit diverged (non-finite loss): start closer, bound the "
-                                 "parameters with `transforms`, or lower the learning rate.")
+        raise FloatingPointError(
+            "The fit diverged (non-finite loss): start closer, bound the "
+            "parameters with `transforms`, or lower the learning rate."
+        )
 
     flat = np.concatenate([np.ravel(np.asarray(leaf)) for leaf in jax.tree.leaves(free)])
     if isinstance(method, str) and np.array_equal(flat, np.asarray(linearization[2])):
@@ -581,9 +600,19 @@ def fit(
     observed = int(np.sum(np.isfinite(np.asarray(batch.observations))))
     noise = None if noise_std is None else np.asarray(float(noise_std), batch.q0.dtype)
     fitted, standard_errors, covariance, residual_std, initial, states = _summary(
-        model, free, fixed_states, r, jac_free, np.asarray(max(observed - flat.size, 1)), noise)
-    return FitResult(fitted, standard_errors, covariance, residual_std,
-                     np.asarray(history), initial, steps, converged, states)
+        model, free, fixed_states, r, jac_free, np.asarray(max(observed - flat.size, 1)), noise
+    )
+    return FitResult(
+        fitted,
+        standard_errors,
+        covariance,
+        residual_std,
+        np.asarray(history),
+        initial,
+        steps,
+        converged,
+        states,
+    )
 
 
 @compilation.filter_jit
@@ -598,8 +627,9 @@ def _summary(model, free, fixed_states, r, jac_free, dof, noise):
     covariance ``σ² (JᵀJ)⁺`` (``J`` in physical parameters, ``σ² = Σr²/dof`` unless the noise
     σ is known), the residual standard deviation and the segment states."""
     fitted = model.physical(free["params"])
-    x = jnp.concatenate([model.spec.ravel(fitted), ravel_pytree(
-        {k: v for k, v in free.items() if k != "params"})[0]])
+    x = jnp.concatenate(
+        [model.spec.ravel(fitted), ravel_pytree({k: v for k, v in free.items() if k != "params"})[0]]
+    )
     jac = jac_free @ _free_variables_jacobian(model, x, free)
     if noise is None:
         sigma2 = jnp.sum(r**2) / dof
@@ -630,9 +660,16 @@ def _progress_bar(total, enabled):
     return tqdm(total=total, desc="jaxlag.fit")
 
 
-def least_squares_loss(system, params: dict, experiments, *, observe: Callable | None = None,
-                       args: dict | None = None, noise_std: float = 1.0,
-                       simulate_kwargs: dict | None = None):
+def least_squares_loss(
+    system,
+    params: dict,
+    experiments,
+    *,
+    observe: Callable | None = None,
+    args: dict | None = None,
+    noise_std: float = 1.0,
+    simulate_kwargs: dict | None = None,
+):
     """The fit's loss ``½ Σ r²`` at physical ``params`` (single shooting, known initial states).
 
     Differentiable with ``jax.grad`` (the default adjoint of :func:`~jaxlag.simulate`) and
@@ -643,13 +680,18 @@ def least_squares_loss(system, params: dict, experiments, *, observe: Callable |
     observe = wrap_state_function(observe or _observe_coordinates, "observation function")
     simulate_kwargs = dict(simulate_kwargs or {})
     adjoint = simulate_kwargs.pop("adjoint", ForwardSensitivities())
-    simulate_kwargs.setdefault("stepsize_controller",
-                               diffrax.PIDController(rtol=1e-10, atol=1e-10))
+    simulate_kwargs.setdefault("stepsize_controller", diffrax.PIDController(rtol=1e-10, atol=1e-10))
     spec = _ParamSpec(tuple(params), tuple(jnp.shape(v) for v in params.values()))
-    model = _Model(system, observe, {}, spec, 1, False,
-                   tuple(sorted(simulate_kwargs.items(), key=lambda kv: kv[0])))
-    data = {"fixed": dict(args or {}), "observations": batch.observations,
-            "noise": noise_std, "ts_seg": batch.ts[:, None, :], "continuity_weight": 0.0}
+    model = _Model(
+        system, observe, {}, spec, 1, False, tuple(sorted(simulate_kwargs.items(), key=lambda kv: kv[0]))
+    )
+    data = {
+        "fixed": dict(args or {}),
+        "observations": batch.observations,
+        "noise": noise_std,
+        "ts_seg": batch.ts[:, None, :],
+        "continuity_weight": 0.0,
+    }
     free = {"params": spec.ravel({k: jnp.asarray(v, float) for k, v in params.items()})}
     r = model.residuals(free, data, (batch.q0[:, None], batch.qd0[:, None]), adjoint)
     return 0.5 * jnp.sum(r**2)

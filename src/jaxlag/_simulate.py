@@ -52,8 +52,10 @@ def _save_times_message(ts) -> str | None:
         steps = np.diff(row)
         if not np.all(steps > 0):
             k = int(np.argmax(~(steps > 0)))
-            return (f"ts must be strictly increasing and finite; ts[{k}] = {row[k]:g} is followed "
-                    f"by ts[{k + 1}] = {row[k + 1]:g}.")
+            return (
+                f"ts must be strictly increasing and finite; ts[{k}] = {row[k]:g} is followed "
+                f"by ts[{k + 1}] = {row[k + 1]:g}."
+            )
     return None
 
 
@@ -80,15 +82,35 @@ def _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection, adjoint):
     return fast, solver, diffrax.ODETerm(EquationsOfMotion(fast, baumgarte))
 
 
-def _integrate(term, solver, t0, t1, dt0, y0, args, saveat, controller, adjoint, event,
-               max_steps, progress_meter, with_tangents=False):
+def _integrate(
+    term,
+    solver,
+    t0,
+    t1,
+    dt0,
+    y0,
+    args,
+    saveat,
+    controller,
+    adjoint,
+    event,
+    max_steps,
+    progress_meter,
+    with_tangents=False,
+):
     """``diffrax.diffeqsolve`` without diffrax's exceptions: failures are recorded (:mod:`jaxlag.failures`).
     ``with_tangents``: ``solver`` is a :class:`~jaxlag.tangent_solve.TangentSolver` and ``y0``
     carries tangents, which the (guarded) ``controller`` is kept from seeing."""
     if with_tangents:
         controller = tangent_solve.primal_step_sizes(controller)
     return diffrax.diffeqsolve(
-        term, solver, t0, t1, dt0, y0, args,
+        term,
+        solver,
+        t0,
+        t1,
+        dt0,
+        y0,
+        args,
         saveat=saving_guard_state(saveat),
         stepsize_controller=controller,
         adjoint=adjoint,
@@ -110,28 +132,63 @@ def _finish(system, fast, projection, solution, ys, t0, t1, q0, qd0, args, max_s
         q, qd = jnp.where(reached, q, jnp.inf), jnp.where(reached, qd, jnp.inf)
     failure = failures.from_solution(solution, t0, t1, q0, qd0, solution.ts, q, qd, max_steps)
     return Trajectory.from_states(
-        system, solution.ts, q, qd, args, stats=solution.stats, result=solution.result,
+        system,
+        solution.ts,
+        q,
+        qd,
+        args,
+        stats=solution.stats,
+        result=solution.result,
         failure=failure,
     )
 
 
 @compilation.filter_jit
-def _solve(system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat, max_steps,
-           adjoint, event, progress_meter, baumgarte, projection, check, tolerance):
+def _solve(
+    system,
+    q0,
+    qd0,
+    t0,
+    t1,
+    dt0,
+    args,
+    solver,
+    stepsize_controller,
+    saveat,
+    max_steps,
+    adjoint,
+    event,
+    progress_meter,
+    baumgarte,
+    projection,
+    check,
+    tolerance,
+):
     system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation
     if check:
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
     solver = stages_for_adjoint(solver, adjoint)  # diffrax does not see it through StepOnce
-    fast, solver, term = _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection,
-                                  adjoint)
+    fast, solver, term = _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection, adjoint)
     solver = StepOnce(solver)
     # Failures are recorded (jaxlag.failures), not thrown by diffrax: simulate raises with the
     # numbers and a diagnosis instead of "max_steps reached" after 65,536 rejected NaN steps.
     controller = guard(stepsize_controller)
-    solution = _integrate(term, solver, t0, t1, dt0, (q0, qd0), args, saveat, controller,
-                          adjoint, event, max_steps, progress_meter)
-    return _finish(system, fast, projection, solution, solution.ys, t0, t1, q0, qd0, args,
-                   max_steps)
+    solution = _integrate(
+        term,
+        solver,
+        t0,
+        t1,
+        dt0,
+        (q0, qd0),
+        args,
+        saveat,
+        controller,
+        adjoint,
+        event,
+        max_steps,
+        progress_meter,
+    )
+    return _finish(system, fast, projection, solution, solution.ys, t0, t1, q0, qd0, args, max_steps)
 
 
 def _user_functions(inputs):
@@ -141,10 +198,18 @@ def _user_functions(inputs):
     jaxlag's modules, whose arrays are inputs, not captured values)."""
     system, q0, qd0, t0 = inputs[:4]
     args = inputs[7]
-    state = {"lagrangian": (q0, qd0), "holonomic": (q0,), "velocity_constraints": (q0, qd0),
-             "dissipation": (q0, qd0), "forces": (q0, qd0)}
-    return [getattr(system, name)(*values, t=t0, args=args) for name, values in state.items()
-            if getattr(system, name) is not None]
+    state = {
+        "lagrangian": (q0, qd0),
+        "holonomic": (q0,),
+        "velocity_constraints": (q0, qd0),
+        "dissipation": (q0, qd0),
+        "forces": (q0, qd0),
+    }
+    return [
+        getattr(system, name)(*values, t=t0, args=args)
+        for name, values in state.items()
+        if getattr(system, name) is not None
+    ]
 
 
 @compilation.filter_jit
@@ -164,21 +229,35 @@ def _solve_with_tangents(run, static, primals, tangents, axes, structure):
     def inputs_of(values):
         return eqx.combine(jax.tree.unflatten(structure, values), static)
 
-    (system, q0, qd0, t0, t1, _, dt0, args, saveat, solver, stepsize_controller, baumgarte,
-     projection, _, _) = inputs_of(leaves)
+    (
+        system,
+        q0,
+        qd0,
+        t0,
+        t1,
+        _,
+        dt0,
+        args,
+        saveat,
+        solver,
+        stepsize_controller,
+        baumgarte,
+        projection,
+        _,
+        _,
+    ) = inputs_of(leaves)
     system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation
     forward = diffrax.ForwardMode()
 
     def prepared(values):
-        system, q0, qd0, t0, _, _, _, args, _, solver, _, baumgarte, projection, _, _ = \
-            inputs_of(values)
+        system, q0, qd0, t0, _, _, _, args, _, solver, _, baumgarte, projection, _, _ = inputs_of(values)
         solver = stages_for_forward_mode(solver)
-        _, solver, term = _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection,
-                                   forward)
+        _, solver, term = _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection, forward)
         return tangent_solve.partition_inexact((solver, term, (q0, qd0), args))
 
-    pieces, piece_tangents, piece_static = tangent_solve.push(prepared, (leaves,), (tangents,),
-                                                              in_axes=(axes,))
+    pieces, piece_tangents, piece_static = tangent_solve.push(
+        prepared, (leaves,), (tangents,), in_axes=(axes,)
+    )
     solver, term, y0, _ = eqx.combine(pieces, piece_static)
     solver_tangent, term_tangent, y0_tangent, args_tangent = piece_tangents
     # The projected solver's system (M found constant, from the parameters) has tangents too.
@@ -186,9 +265,22 @@ def _solve_with_tangents(run, static, primals, tangents, axes, structure):
     stepper = tangent_solve.TangentSolver(solver, projected)
     controller = guard(stepsize_controller)
     variational = tangent_solve.TangentTerm(term, term_tangent, args_tangent)
-    solution = _integrate(variational, stepper, t0, t1, dt0, (y0, y0_tangent), args, saveat,
-                          controller, forward, None, run.max_steps, run.progress_meter,
-                          with_tangents=True)
+    solution = _integrate(
+        variational,
+        stepper,
+        t0,
+        t1,
+        dt0,
+        (y0, y0_tangent),
+        args,
+        saveat,
+        controller,
+        forward,
+        None,
+        run.max_steps,
+        run.progress_meter,
+        with_tangents=True,
+    )
     ys, ys_tangent = solution.ys
     ys_tangent = jax.tree.map(lambda x: jnp.moveaxis(x, 1, 0), ys_tangent)  # (k, T, ...)
     term_dyn, term_static = tangent_solve.partition_inexact(term)
@@ -196,12 +288,12 @@ def _solve_with_tangents(run, static, primals, tangents, axes, structure):
     def finished(values, term_values, ys):
         system, q0, qd0, t0, t1, _, _, args, _, _, _, _, projection, _, _ = inputs_of(values)
         fast = eqx.combine(term_values, term_static).vector_field.system
-        trajectory = _finish(system, fast, projection, solution, ys, t0, t1, q0, qd0, args,
-                             run.max_steps)
+        trajectory = _finish(system, fast, projection, solution, ys, t0, t1, q0, qd0, args, run.max_steps)
         return eqx.partition(trajectory, eqx.is_inexact_array)
 
-    return tangent_solve.push(finished, (leaves, term_dyn, ys),
-                              (tangents, term_tangent, ys_tangent), in_axes=(axes, 0, 0))
+    return tangent_solve.push(
+        finished, (leaves, term_dyn, ys), (tangents, term_tangent, ys_tangent), in_axes=(axes, 0, 0)
+    )
 
 
 class _Run(eqx.Module):
@@ -230,29 +322,63 @@ class _Run(eqx.Module):
         a plain solve (no events), an explicit Runge–Kutta solver, a guarded controller, states
         saved as they are, and no perturbed time, save time, solver, controller or progress
         meter."""
-        (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller, baumgarte,
-         projection, events, event) = inputs
+        (
+            system,
+            q0,
+            qd0,
+            t0,
+            t1,
+            ts,
+            dt0,
+            args,
+            saveat,
+            solver,
+            stepsize_controller,
+            baumgarte,
+            projection,
+            events,
+            event,
+        ) = inputs
         if self.segmented or event is not None or events:
             return False
         # An explicit Runge–Kutta method (Euler included), not wrapped: its step of the
         # variational equations is exactly the jvp of its step. (A wrapper may transform the
         # state nonlinearly; other solvers take the general path.)
-        explicit = (isinstance(solver, (diffrax.AbstractERK, diffrax.Euler))
-                    and not isinstance(solver, diffrax.AbstractWrappedSolver))
+        explicit = isinstance(solver, (diffrax.AbstractERK, diffrax.Euler)) and not isinstance(
+            solver, diffrax.AbstractWrappedSolver
+        )
         if not explicit or isinstance(stepsize_controller, diffrax.StepTo):
             return False
         subs = jax.tree.leaves(saveat.subs, is_leaf=lambda x: isinstance(x, diffrax.SubSaveAt))
-        if saveat.dense or saveat.solver_state or saveat.made_jump or \
-                any(sub.fn is not _SAVE_Y for sub in subs):
+        if (
+            saveat.dense
+            or saveat.solver_state
+            or saveat.made_jump
+            or any(sub.fn is not _SAVE_Y for sub in subs)
+        ):
             return False
         if perturbed is None:
             return True
         counts = [len(jax.tree.leaves(eqx.filter(x, eqx.is_inexact_array))) for x in inputs]
-        stepped = (True, True, True, False, False, False, False, True, False, False, False, True,
-                   True, False, False)  # system, q0, qd0, args, baumgarte, projection
+        stepped = (
+            True,
+            True,
+            True,
+            False,
+            False,
+            False,
+            False,
+            True,
+            False,
+            False,
+            False,
+            True,
+            True,
+            False,
+            False,
+        )  # system, q0, qd0, args, baumgarte, projection
         flags = iter(perturbed)
-        return all(not next(flags) or ok for ok, count in zip(stepped, counts)
-                   for _ in range(count))
+        return all(not next(flags) or ok for ok, count in zip(stepped, counts) for _ in range(count))
 
     def push_along(self, primals, static, tangents, axes, structure):
         """``(outputs, tangents, rest)`` along k directions: :func:`_solve_with_tangents`."""
@@ -260,23 +386,70 @@ class _Run(eqx.Module):
 
     def push_along_shapes(self, primals, static, tangents, axes, structure):
         """``jax.eval_shape`` of :meth:`push_along`."""
-        return eqx.filter_eval_shape(_solve_with_tangents, self, static, primals, tangents, axes,
-                                     structure)
+        return eqx.filter_eval_shape(_solve_with_tangents, self, static, primals, tangents, axes, structure)
 
     def __call__(self, inputs, adjoint):
-        (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller, baumgarte,
-         projection, events, event) = inputs
+        (
+            system,
+            q0,
+            qd0,
+            t0,
+            t1,
+            ts,
+            dt0,
+            args,
+            saveat,
+            solver,
+            stepsize_controller,
+            baumgarte,
+            projection,
+            events,
+            event,
+        ) = inputs
         if self.segmented:
             ts_out, q, qd, active, log, failure = solve_segments(
-                system, q0, qd0, t0, t1, ts, dt0, args, solver, stepsize_controller,
-                self.max_steps, adjoint, self.progress_meter, baumgarte, projection, events,
-                self.max_segments, self.event_root_finder, self.check, self.tolerance,
+                system,
+                q0,
+                qd0,
+                t0,
+                t1,
+                ts,
+                dt0,
+                args,
+                solver,
+                stepsize_controller,
+                self.max_steps,
+                adjoint,
+                self.progress_meter,
+                baumgarte,
+                projection,
+                events,
+                self.max_segments,
+                self.event_root_finder,
+                self.check,
+                self.tolerance,
             )
-            return Trajectory.from_states(system, ts_out, q, qd, args, active=active, events=log,
-                                          failure=failure)
+            return Trajectory.from_states(
+                system, ts_out, q, qd, args, active=active, events=log, failure=failure
+            )
         return _solve(
-            system, q0, qd0, t0, t1, dt0, args, solver, stepsize_controller, saveat,
-            self.max_steps, adjoint, event, self.progress_meter, baumgarte, projection, self.check,
+            system,
+            q0,
+            qd0,
+            t0,
+            t1,
+            dt0,
+            args,
+            solver,
+            stepsize_controller,
+            saveat,
+            self.max_steps,
+            adjoint,
+            event,
+            self.progress_meter,
+            baumgarte,
+            projection,
+            self.check,
             self.tolerance,
         )
 
@@ -391,9 +564,7 @@ def simulate(
     if adjoint is None:
         adjoint = ForwardSensitivities()
     if not isinstance(adjoint, (diffrax.AbstractAdjoint, ForwardSensitivities)):
-        raise TypeError(
-            f"adjoint must be a diffrax adjoint or jl.ForwardSensitivities(); got {adjoint!r}."
-        )
+        raise TypeError(f"adjoint must be a diffrax adjoint or jl.ForwardSensitivities(); got {adjoint!r}.")
     if progress_meter is None:
         progress_meter = diffrax.NoProgressMeter()
     if isinstance(projection, str):
@@ -423,11 +594,33 @@ def simulate(
     if segmented and event_root_finder is None:
         event_root_finder = default_root_finder()
 
-    run = _Run(segmented, max_steps, progress_meter, int(max_segments), event_root_finder,
-               check_in_jit, constraint_tolerance)
+    run = _Run(
+        segmented,
+        max_steps,
+        progress_meter,
+        int(max_segments),
+        event_root_finder,
+        check_in_jit,
+        constraint_tolerance,
+    )
 
-    inputs = (system, q0, qd0, t0, t1, ts, dt0, args, saveat, solver, stepsize_controller,
-              baumgarte, projection, events, event)
+    inputs = (
+        system,
+        q0,
+        qd0,
+        t0,
+        t1,
+        ts,
+        dt0,
+        args,
+        saveat,
+        solver,
+        stepsize_controller,
+        baumgarte,
+        projection,
+        events,
+        event,
+    )
     if isinstance(adjoint, ForwardSensitivities) and not is_concrete(inputs):
         # One abstract trace: does a user function close over a traced value (a parameter of the
         # caller's grad captured in L)? A custom_vjp cannot see it, so the checkpointed adjoint
@@ -452,8 +645,7 @@ def simulate(
             prepare = None
             if run.check:
                 prepare = ft.partial(_checked_initial_state, tolerance=constraint_tolerance)
-            return call_with_forward_sensitivities(unchecked, inputs, adjoint, shapes, finish,
-                                                   prepare)
+            return call_with_forward_sensitivities(unchecked, inputs, adjoint, shapes, finish, prepare)
     elif isinstance(adjoint, ForwardSensitivities):
         # No traced input; a user function may still close over a value of the caller's grad,
         # which the fallback (reverse-mode) adjoint differentiates. Outside every transformation

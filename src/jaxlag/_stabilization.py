@@ -79,8 +79,18 @@ def _hold(rows, free):
     return rows if free is None else rows * free[None, :]
 
 
-def project_state(system, q, qd, t, args, newton_steps: int = 2, active=None,
-                  refresh_mass: bool = False, free_q=None, free_qd=None):
+def project_state(
+    system,
+    q,
+    qd,
+    t,
+    args,
+    newton_steps: int = 2,
+    active=None,
+    refresh_mass: bool = False,
+    free_q=None,
+    free_qd=None,
+):
     """Project ``(q, q̇)`` onto ``f = 0``, ``ḟ = 0``, ``g = 0`` in the metric of ``M(q, q̇)``.
 
     The metric is ``M`` at the incoming state, factored once and held fixed through the Newton
@@ -102,6 +112,7 @@ def project_state(system, q, qd, t, args, newton_steps: int = 2, active=None,
         solve_mass = _held_mass_solver(system, q, qd, t, args, free_qd)
     rows, residual = [], []
     if system.holonomic is not None:
+
         def f_of(x, s):
             return _constraints.holonomic_residual(system, x, s, args)
 
@@ -174,8 +185,18 @@ def _free_mask(indices, n, dtype, name):
     return jnp.ones((n,), dtype).at[jnp.asarray(indices)].set(0.0)
 
 
-def consistent_initial_state(system, q0, qd0, t0=0.0, args=None, *, fixed_q=(), fixed_qd=(),
-                             newton_steps: int = 20, tolerance: float | None = None):
+def consistent_initial_state(
+    system,
+    q0,
+    qd0,
+    t0=0.0,
+    args=None,
+    *,
+    fixed_q=(),
+    fixed_qd=(),
+    newton_steps: int = 20,
+    tolerance: float | None = None,
+):
     """Project an approximate initial state onto the constraint manifold.
 
     Positions move by the mass-weighted minimal correction (Newton, ``newton_steps`` fixed
@@ -202,8 +223,9 @@ def consistent_initial_state(system, q0, qd0, t0=0.0, args=None, *, fixed_q=(), 
     free_q = _free_mask(fixed_q, n, q0.dtype, "fixed_q")
     free_qd = _free_mask(fixed_qd, n, q0.dtype, "fixed_qd")
     t0 = jnp.asarray(t0, dtype=q0.dtype)
-    return _consistent_state(system, q0, qd0, t0, as_array_leaves(args), newton_steps, tolerance,
-                             free_q, free_qd)
+    return _consistent_state(
+        system, q0, qd0, t0, as_array_leaves(args), newton_steps, tolerance, free_q, free_qd
+    )
 
 
 _POSITION_MESSAGE = (
@@ -213,14 +235,14 @@ _POSITION_MESSAGE = (
 )
 
 
-def projection_with_residuals(system, q0, qd0, t0, args, newton_steps=20, free_q=None,
-                              free_qd=None):
+def projection_with_residuals(system, q0, qd0, t0, args, newton_steps=20, free_q=None, free_qd=None):
     """``(q, qd, position_residual, velocity_residual)``: the projection of
     :func:`consistent_initial_state` without its checks, and what they test: ``max |f(q)|`` and
     (with ``free_qd``) ``max |(ḟ, g)|`` (zeros where there is nothing to test). For callers that
     check on the host after their program has run (``jl.fit``): no host callback is compiled."""
-    q, qd = project_state(system, q0, qd0, t0, args, newton_steps, refresh_mass=True,
-                          free_q=free_q, free_qd=free_qd)
+    q, qd = project_state(
+        system, q0, qd0, t0, args, newton_steps, refresh_mass=True, free_q=free_q, free_qd=free_qd
+    )
     zero = jnp.zeros((), q.dtype)
     position = zero
     if system.holonomic is not None:
@@ -237,7 +259,7 @@ def default_projection_tolerance(dtype) -> float:
     """The default ``tolerance`` of :func:`consistent_initial_state`: 1e-10 in float64, ``√ε``
     of lower precisions (3.5e-4 in float32)."""
     eps = float(jnp.finfo(dtype).eps)
-    return 1e-10 if eps <= float(jnp.finfo(jnp.float64).eps) else eps ** 0.5
+    return 1e-10 if eps <= float(jnp.finfo(jnp.float64).eps) else eps**0.5
 
 
 def position_failure_message(tolerance, dtype) -> str:
@@ -249,11 +271,11 @@ def position_failure_message(tolerance, dtype) -> str:
 # every small operation separately.
 @compilation.filter_jit
 def _consistent_state(system, q0, qd0, t0, args, newton_steps, tolerance, free_q, free_qd):
-    q, qd, position, velocity = projection_with_residuals(system, q0, qd0, t0, args,
-                                                          newton_steps, free_q, free_qd)
+    q, qd, position, velocity = projection_with_residuals(
+        system, q0, qd0, t0, args, newton_steps, free_q, free_qd
+    )
     if system.holonomic is not None:
-        q = eqx.error_if(q, ~(position <= tolerance),
-                         position_failure_message(tolerance, q0.dtype))
+        q = eqx.error_if(q, ~(position <= tolerance), position_failure_message(tolerance, q0.dtype))
     if free_qd is not None:
         qd = eqx.error_if(
             qd,
@@ -269,8 +291,10 @@ def stages_for_forward_mode(solver, kind="lax"):
     forward-mode differentiation of a step needs (diffrax's default scan is checkpointed for
     reverse mode, which ``jax.jvp`` cannot go through). Other solvers are returned as they are."""
     # (A wrapper that does not forward ``scan_kind``, e.g. diffrax's HalfSolver, is left as it is.)
-    if (isinstance(solver, (diffrax.AbstractRungeKutta, diffrax.AbstractSRK))
-            and getattr(solver, "scan_kind", "unknown") is None):
+    if (
+        isinstance(solver, (diffrax.AbstractRungeKutta, diffrax.AbstractSRK))
+        and getattr(solver, "scan_kind", "unknown") is None
+    ):
         solver = eqx.tree_at(lambda s: s.scan_kind, solver, kind, is_leaf=lambda x: x is None)
     return solver
 

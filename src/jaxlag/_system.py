@@ -74,9 +74,7 @@ class System(eqx.Module):
     ):
         self.lagrangian = wrap_state_function(lagrangian, "lagrangian")
         self.holonomic = wrap_configuration_function(holonomic, "holonomic constraint function")
-        self.velocity_constraints = wrap_state_function(
-            velocity_constraints, "velocity constraint function"
-        )
+        self.velocity_constraints = wrap_state_function(velocity_constraints, "velocity constraint function")
         self.dissipation = wrap_state_function(dissipation, "dissipation function")
         self.forces = wrap_state_function(forces, "force function")
         self.least_squares = bool(least_squares)
@@ -107,9 +105,7 @@ class System(eqx.Module):
         if q.ndim != 1:
             raise ValueError(f"q must be a 1-D array of generalized coordinates; got shape {q.shape}.")
         if qd.shape != q.shape:
-            raise ValueError(
-                f"q and qd must have the same shape (n,); got q {q.shape} and qd {qd.shape}."
-            )
+            raise ValueError(f"q and qd must have the same shape (n,); got q {q.shape} and qd {qd.shape}.")
         if not jnp.issubdtype(q.dtype, jnp.floating) or not jnp.issubdtype(qd.dtype, jnp.floating):
             raise TypeError(f"q and qd must be floating point; got {q.dtype} and {qd.dtype}.")
         n = q.shape[0]

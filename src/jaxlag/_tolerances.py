@@ -21,7 +21,7 @@ def default_constraint_tolerance(dtype) -> float:
     """``|f|, |ḟ|, |g|`` accepted at the initial state: 1e-8 in float64; in lower precision
     ``√ε`` of the dtype (3.5e-4 in float32), where round-off of ``f`` alone is ~1e-7·|q|²."""
     eps = float(jnp.finfo(dtype).eps)
-    return 1e-8 if eps <= float(jnp.finfo(jnp.float64).eps) else eps ** 0.5
+    return 1e-8 if eps <= float(jnp.finfo(jnp.float64).eps) else eps**0.5
 
 
 def default_solver_tolerance(dtype) -> float:

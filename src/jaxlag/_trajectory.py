@@ -90,8 +90,9 @@ class Trajectory(eqx.Module):
     system_static: Any = eqx.field(static=True)
 
     @classmethod
-    def from_states(cls, system, t, q, qd, args, stats=None, result=None, active=None,
-                    events=None, failure=None):
+    def from_states(
+        cls, system, t, q, qd, args, stats=None, result=None, active=None, events=None, failure=None
+    ):
         arrays, static = eqx.partition(system, eqx.is_array)
         return cls(t, q, qd, args, stats, result, arrays, active, events, failure, static)
 
@@ -102,8 +103,7 @@ class Trajectory(eqx.Module):
         if self.failure is None:
             return
         batched = jnp.ndim(self.failure.code) > 0
-        raise_if_failed(self.failure, None if batched else self.system,
-                        None if batched else self.args)
+        raise_if_failed(self.failure, None if batched else self.system, None if batched else self.args)
 
     @property
     def system(self):
@@ -112,7 +112,13 @@ class Trajectory(eqx.Module):
 
     def _get(self, name):
         return _evaluate(
-            name, self.system_arrays, self.system_static, self.t, self.q, self.qd, self.args,
+            name,
+            self.system_arrays,
+            self.system_static,
+            self.t,
+            self.q,
+            self.qd,
+            self.args,
             self.active,
         )
 

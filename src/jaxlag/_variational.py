@@ -129,9 +129,7 @@ def _check_quadratic(system, q, qd, t, args):
     """
     scale = 1.0 + jnp.max(jnp.abs(qd))
     direction = qd + scale * jnp.cos(jnp.arange(qd.shape[0], dtype=q.dtype) + 0.5)
-    values = jnp.stack([
-        system.lagrangian(q, s * direction, t=t, args=args) for s in (0.0, 1.0, 2.0, 3.0)
-    ])
+    values = jnp.stack([system.lagrangian(q, s * direction, t=t, args=args) for s in (0.0, 1.0, 2.0, 3.0)])
     third = values[3] - 3 * values[2] + 3 * values[1] - values[0]
     return jnp.abs(third) / (1.0 + jnp.max(jnp.abs(values)))
 
@@ -242,9 +240,7 @@ class _Step(NamedTuple):
 
 
 def _root(fn, y0, ctx, scheme):
-    sol = optx.root_find(
-        fn, scheme.solver(), y0, ctx, max_steps=scheme.max_newton_steps, throw=False
-    )
+    sol = optx.root_find(fn, scheme.solver(), y0, ctx, max_steps=scheme.max_newton_steps, throw=False)
     return sol.value, jnp.asarray(sol.stats["num_steps"], jnp.int32), sol.result
 
 
@@ -302,8 +298,7 @@ def _velocity_stage(scheme, system, q1, p_tilde, t1, args, qd_guess, constants):
             b = _lagrangian_gradient(system, q1, qd_guess, t1, args)[1] - mass @ qd_guess
         diagonal = bool(getattr(system, "diagonal_mass", False))
         if jac1 is None:
-            qd1 = (minv @ (p_tilde - b) if scheme.constant_mass
-                   else solve_spd(mass, p_tilde - b, diagonal))
+            qd1 = minv @ (p_tilde - b) if scheme.constant_mass else solve_spd(mass, p_tilde - b, diagonal)
             return qd1, p_tilde, empty, jac1, no_iterations, success
         if scheme.constant_mass:
             qd1, nu = _project_with_inverse(minv, p_tilde - b, jac1, -f_t1)
@@ -367,8 +362,7 @@ def _step(scheme, system, args, constants, h, t0, q0, p0, local0, guess, qd_gues
     )
     result = optx.RESULTS.where(result == optx.RESULTS.successful, v_result, result)
     lam = 2.0 * impulse / (h * h)
-    return _Step(q1, p1, qd1, lam, 2.0 * nu / h, (jac1, lq1), dq / h,
-                 iterations + v_iterations, result)
+    return _Step(q1, p1, qd1, lam, 2.0 * nu / h, (jac1, lq1), dq / h, iterations + v_iterations, result)
 
 
 # --------------------------------------------------------------------------- the integration
@@ -398,8 +392,7 @@ def _substep(scheme, system, args, constants, h, t, carry: _Carry):
     guess_dq = h * (carry.qd + 0.5 * h * accel)
     lam_guess = 2.0 * lam1 - lam2 if scheme.order == 2 else lam1
     guess = (guess_dq, 0.5 * h * h * lam_guess)
-    out = _step(scheme, system, args, constants, h, t, carry.q, carry.p, carry.local, guess,
-                carry.qd)
+    out = _step(scheme, system, args, constants, h, t, carry.q, carry.p, carry.local, guess, carry.qd)
     ok = out.result == optx.RESULTS.successful
     first_failure = (carry.failed_step < 0) & ~ok
     new = carry._replace(
@@ -429,16 +422,13 @@ def _advance(scheme, system, args, constants, h, t0, carry: _Carry):
 
         def sub(c, gamma_offset):
             gamma, offset = gamma_offset
-            c, lam, iterations = _substep(scheme, system, args, constants, gamma * h,
-                                          t + offset * h, c)
+            c, lam, iterations = _substep(scheme, system, args, constants, gamma * h, t + offset * h, c)
             return c, (lam, iterations)
 
         schedule = (jnp.asarray(gammas, carry.q.dtype), jnp.asarray(offsets, carry.q.dtype))
         carry, (lams, iterations) = jax.lax.scan(sub, carry, schedule)
         first_lam, iterations = lams[0], jnp.sum(iterations, dtype=jnp.int32)
-    carry = carry._replace(
-        step=carry.step + 1, max_iterations=jnp.maximum(carry.max_iterations, iterations)
-    )
+    carry = carry._replace(step=carry.step + 1, max_iterations=jnp.maximum(carry.max_iterations, iterations))
     return carry, first_lam
 
 
@@ -455,8 +445,7 @@ _FAILURE = (
 
 
 @compilation.filter_jit
-def _integrate(scheme, system, q0, qd0, t0, dt, args, num_steps, save_every, throw, check,
-               tolerance):
+def _integrate(scheme, system, q0, qd0, t0, dt, args, num_steps, save_every, throw, check, tolerance):
     system.check(q0, qd0, t0, args)
     if check:
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
@@ -472,11 +461,18 @@ def _integrate(scheme, system, q0, qd0, t0, dt, args, num_steps, save_every, thr
     qdd0, lam0, _ = accelerations_and_multipliers(system, q0, qd0, t0, args)
     zero = jnp.zeros((), jnp.int32)
     carry = _Carry(
-        q=q0, p=p0, qd=qd0,
+        q=q0,
+        p=p0,
+        qd=qd0,
         local=_local_terms(scheme, system, q0, qd0, t0, args),
         secant=(qd0 - 0.5 * h * qdd0, h),
-        lams=(lam0, lam0), mu=lam0, step=zero, iterations=zero, max_iterations=zero,
-        failed_step=jnp.asarray(-1, jnp.int32), result=optx.RESULTS.successful,
+        lams=(lam0, lam0),
+        mu=lam0,
+        step=zero,
+        iterations=zero,
+        max_iterations=zero,
+        failed_step=jnp.asarray(-1, jnp.int32),
+        result=optx.RESULTS.successful,
     )
 
     def block(carry, _):
@@ -488,9 +484,7 @@ def _integrate(scheme, system, q0, qd0, t0, dt, args, num_steps, save_every, thr
         return carry, (carry.q, carry.qd, carry.mu, lams[0])
 
     num_saves = num_steps // save_every
-    last, (qs, qds, mus, lams_first) = jax.lax.scan(
-        jax.checkpoint(block), carry, None, length=num_saves
-    )
+    last, (qs, qds, mus, lams_first) = jax.lax.scan(jax.checkpoint(block), carry, None, length=num_saves)
     # The discrete multiplier at a saved state q_k is the DEL one, (μ_{k−1} + λ_k)/2: λ_k and
     # μ_{k−1} have opposite O(h) errors. At t₀, where μ_{−1} does not exist, the continuous λ(t₀) is
     # reported; at the end one more position stage gives λ_N (its state is discarded, and so is
@@ -510,8 +504,9 @@ def _integrate(scheme, system, q0, qd0, t0, dt, args, num_steps, save_every, thr
         failed_step=last.failed_step,
         multipliers=multipliers,
     )
-    return Trajectory.from_states(system, t, q, qd, args, stats=stats,
-                                  result=diffrax.RESULTS.promote(last.result))
+    return Trajectory.from_states(
+        system, t, q, qd, args, stats=stats, result=diffrax.RESULTS.promote(last.result)
+    )
 
 
 def simulate_variational(
@@ -607,9 +602,7 @@ def simulate_variational(
     if num_steps < 1 or save_every < 1:
         raise ValueError("num_steps and save_every must be positive integers.")
     if num_steps % save_every:
-        raise ValueError(
-            f"num_steps ({num_steps}) must be a multiple of save_every ({save_every})."
-        )
+        raise ValueError(f"num_steps ({num_steps}) must be a multiple of save_every ({save_every}).")
     q0 = jnp.asarray(q0)
     if not jnp.issubdtype(q0.dtype, jnp.floating):
         q0 = q0.astype(jnp.result_type(float))
@@ -635,7 +628,8 @@ def simulate_variational(
                 )
         else:
             q0 = eqx.error_if(
-                q0, ~(deviation <= 1e-8),
+                q0,
+                ~(deviation <= 1e-8),
                 "jaxlag.simulate_variational: method='rattle' needs a Lagrangian quadratic in "
                 "q̇; use method='variational'.",
             )
@@ -656,5 +650,17 @@ def simulate_variational(
     if check_initial_state and is_concrete((q0, qd0, t0, args)):
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, constraint_tolerance)
         check_in_jit = False
-    return _integrate(scheme, system, q0, qd0, t0, dt, args, num_steps, save_every,
-                      bool(throw), check_in_jit, float(constraint_tolerance))
+    return _integrate(
+        scheme,
+        system,
+        q0,
+        qd0,
+        t0,
+        dt,
+        args,
+        num_steps,
+        save_every,
+        bool(throw),
+        check_in_jit,
+        float(constraint_tolerance),
+    )

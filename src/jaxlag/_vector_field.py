@@ -29,9 +29,7 @@ class EquationsOfMotion(eqx.Module):
     def __call__(self, t, y, args):
         q, qd = y
         if self.system.is_constrained:
-            qdd = accelerations_and_multipliers(
-                self.system, q, qd, t, args, self.baumgarte, self.active
-            )[0]
+            qdd = accelerations_and_multipliers(self.system, q, qd, t, args, self.baumgarte, self.active)[0]
         else:
             qdd = unconstrained_accelerations(self.system, q, qd, t, args)
         return qd, qdd

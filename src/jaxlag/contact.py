@@ -56,8 +56,9 @@ def _offset(centre, rotation, radius, shape, axis):
     return -radius * in_plane / jnp.linalg.norm(in_plane)
 
 
-def contact_point(body: RigidBody3D, q, radius, *, shape: str = "disk", axis=(0.0, 0.0, 1.0),
-                  t=0.0, args=None):
+def contact_point(
+    body: RigidBody3D, q, radius, *, shape: str = "disk", axis=(0.0, 0.0, 1.0), t=0.0, args=None
+):
     """World position of the lowest point ``P`` of a disk (axis ``axis`` in body coordinates)
     or sphere of radius ``radius`` (a number or a function of ``args``)."""
     _check(body, shape)
@@ -65,8 +66,9 @@ def contact_point(body: RigidBody3D, q, radius, *, shape: str = "disk", axis=(0.
     return centre + _offset(centre, rotation, parameter_value(radius, args, "radius"), shape, axis)
 
 
-def contact_velocity(body: RigidBody3D, q, qd, radius, *, shape: str = "disk",
-                     axis=(0.0, 0.0, 1.0), t=0.0, args=None):
+def contact_velocity(
+    body: RigidBody3D, q, qd, radius, *, shape: str = "disk", axis=(0.0, 0.0, 1.0), t=0.0, args=None
+):
     """``v_P = ẋ_c + ω × (P − x_c)``: velocity (world axes) of the material point at ``P``."""
     _check(body, shape)
     (centre, rotation), (velocity, rate) = body.pose_and_rates(q, qd, t, args)
@@ -74,8 +76,7 @@ def contact_velocity(body: RigidBody3D, q, qd, radius, *, shape: str = "disk",
     return velocity + jnp.cross(unskew(rate @ rotation.T), offset)
 
 
-def contact_height(body: RigidBody3D, radius, *, shape: str = "disk",
-                   axis=(0.0, 0.0, 1.0)) -> Callable:
+def contact_height(body: RigidBody3D, radius, *, shape: str = "disk", axis=(0.0, 0.0, 1.0)) -> Callable:
     """Holonomic contact ``f(q, t, args) = (P_z,)``: the body touches the plane ``z = 0``.
     Its multiplier is the normal force ``N`` (see the module docstring)."""
     _check(body, shape)
@@ -86,9 +87,14 @@ def contact_height(body: RigidBody3D, radius, *, shape: str = "disk",
     return height
 
 
-def rolling_without_slipping(body: RigidBody3D, radius, *, shape: str = "disk",
-                             axis=(0.0, 0.0, 1.0), surface_velocity: Callable | None = None
-                             ) -> Callable:
+def rolling_without_slipping(
+    body: RigidBody3D,
+    radius,
+    *,
+    shape: str = "disk",
+    axis=(0.0, 0.0, 1.0),
+    surface_velocity: Callable | None = None,
+) -> Callable:
     r"""Velocity constraint ``g(q, qd, t, args) = (v_P − v_s)_{x,y} = 0`` (shape (2,)).
 
     - ``body``: a :class:`RigidBody3D` whose centre of mass is the disk's or sphere's centre.

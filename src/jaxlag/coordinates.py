@@ -308,9 +308,7 @@ def kinetic_energy_from_positions(
     bodies = tuple(bodies)
     for b in bodies:
         if not isinstance(b, (RigidBody2D, RigidBody3D)):
-            raise TypeError(
-                f"bodies must be RigidBody2D or RigidBody3D instances; got {type(b).__name__}."
-            )
+            raise TypeError(f"bodies must be RigidBody2D or RigidBody3D instances; got {type(b).__name__}.")
     if fn is None and not bodies:
         raise ValueError("Give a position map, rigid bodies, or both.")
 

@@ -105,9 +105,7 @@ class Torque(eqx.Module):
 
     def __init__(self, body, torque):
         if not isinstance(body, _BODIES):
-            raise TypeError(
-                f"A torque acts on a RigidBody3D or RigidBody2D; got {type(body).__name__}."
-            )
+            raise TypeError(f"A torque acts on a RigidBody3D or RigidBody2D; got {type(body).__name__}.")
         self.body = body
         self.torque = _load_function(torque, "torque")
 
@@ -117,15 +115,19 @@ class Torque(eqx.Module):
         frozen = jnp.asarray(t, q.dtype)
 
         if isinstance(self.body, RigidBody3D):
+
             def velocity(v):
-                (_, rotation), (_, rate) = jax.jvp(
-                    lambda x: self.body.position(x, frozen, args), (q,), (v,))
+                (_, rotation), (_, rate) = jax.jvp(lambda x: self.body.position(x, frozen, args), (q,), (v,))
                 return _world_rate(rotation, rate)
+
             shape = (3,)
         else:
+
             def velocity(v):
-                return jax.jvp(lambda x: jnp.asarray(self.body.pose(x, t=frozen, args=args)),
-                               (q,), (v,))[1][2]
+                return jax.jvp(lambda x: jnp.asarray(self.body.pose(x, t=frozen, args=args)), (q,), (v,))[1][
+                    2
+                ]
+
             shape = ()
         if load.shape != shape:
             raise ValueError(

@@ -58,11 +58,13 @@ def skew(vector):
     if v.shape != (3,):
         raise ValueError(f"skew expects a vector of shape (3,); got shape {v.shape}.")
     zero = jnp.zeros((), v.dtype)
-    return jnp.stack([
-        jnp.stack([zero, -v[2], v[1]]),
-        jnp.stack([v[2], zero, -v[0]]),
-        jnp.stack([-v[1], v[0], zero]),
-    ])
+    return jnp.stack(
+        [
+            jnp.stack([zero, -v[2], v[1]]),
+            jnp.stack([v[2], zero, -v[0]]),
+            jnp.stack([-v[1], v[0], zero]),
+        ]
+    )
 
 
 def unskew(matrix):
@@ -99,8 +101,13 @@ def euler_matrix(angles, sequence: str = "zxz", *, extrinsic: bool = False):
     is the classical ``(φ, θ, ψ)`` = (precession, nutation, spin), singular (gimbal lock) at
     ``θ = 0, π``.
     """
-    if (not isinstance(sequence, str) or len(sequence) != 3 or any(a not in _AXES for a in sequence)
-            or sequence[0] == sequence[1] or sequence[1] == sequence[2]):
+    if (
+        not isinstance(sequence, str)
+        or len(sequence) != 3
+        or any(a not in _AXES for a in sequence)
+        or sequence[0] == sequence[1]
+        or sequence[1] == sequence[2]
+    ):
         raise ValueError(
             f"sequence must be three letters from 'xyz' with no two neighbours equal (e.g. 'zxz', "
             f"'zyx'); got {sequence!r}."
@@ -139,12 +146,14 @@ def quaternion_from_matrix(matrix):
     if r.shape != (3, 3):
         raise ValueError(f"quaternion_from_matrix takes a (3, 3) matrix; got shape {r.shape}.")
     d0, d1, d2 = r[0, 0], r[1, 1], r[2, 2]
-    candidates = jnp.stack([
-        jnp.stack([1.0 + d0 + d1 + d2, r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]),
-        jnp.stack([r[2, 1] - r[1, 2], 1.0 + d0 - d1 - d2, r[0, 1] + r[1, 0], r[0, 2] + r[2, 0]]),
-        jnp.stack([r[0, 2] - r[2, 0], r[0, 1] + r[1, 0], 1.0 - d0 + d1 - d2, r[1, 2] + r[2, 1]]),
-        jnp.stack([r[1, 0] - r[0, 1], r[0, 2] + r[2, 0], r[1, 2] + r[2, 1], 1.0 - d0 - d1 + d2]),
-    ])
+    candidates = jnp.stack(
+        [
+            jnp.stack([1.0 + d0 + d1 + d2, r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]),
+            jnp.stack([r[2, 1] - r[1, 2], 1.0 + d0 - d1 - d2, r[0, 1] + r[1, 0], r[0, 2] + r[2, 0]]),
+            jnp.stack([r[0, 2] - r[2, 0], r[0, 1] + r[1, 0], 1.0 - d0 + d1 - d2, r[1, 2] + r[2, 1]]),
+            jnp.stack([r[1, 0] - r[0, 1], r[0, 2] + r[2, 0], r[1, 2] + r[2, 1], 1.0 - d0 - d1 + d2]),
+        ]
+    )
     pivots = jnp.diagonal(candidates)
     best = jnp.argmax(pivots)
     pivot = jnp.maximum(pivots[best], jnp.finfo(r.dtype).tiny)
@@ -168,8 +177,7 @@ def axis_angle_matrix(axis, angle):
 def _orientation_rate(orientation, q, qd, t, args):
     """``(R, Ṙ)`` with ``Ṙ = (∂R/∂q) q̇ + ∂R/∂t``: one jvp along ``(q̇, 1)``."""
     t = jnp.asarray(t, dtype=q.dtype)
-    return jax.jvp(lambda x, s: jnp.asarray(orientation(x, t=s, args=args)), (q, t),
-                   (qd, jnp.ones_like(t)))
+    return jax.jvp(lambda x, s: jnp.asarray(orientation(x, t=s, args=args)), (q, t), (qd, jnp.ones_like(t)))
 
 
 def angular_velocity(orientation: Callable, q, qd, t=0.0, args=None, *, frame: str = "body"):

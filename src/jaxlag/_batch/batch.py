@@ -83,7 +83,9 @@ def _batched_mask(args, args_axes):
     try:
         return jax.tree.map(
             lambda axis, sub: jax.tree.map(lambda _: check(axis), sub),
-            args_axes, args, is_leaf=lambda x: x is None,
+            args_axes,
+            args,
+            is_leaf=lambda x: x is None,
         )
     except ValueError as error:
         if "args_axes entries" in str(error):
@@ -149,10 +151,12 @@ def _constrain(tree, sharding):
 
 
 @compilation.filter_jit
-def _run_batch(system, q0, qd0, ts, batched_args, shared_args, q_axis, qd_axis, kwargs,
-               out_sharding, initial_check):
+def _run_batch(
+    system, q0, qd0, ts, batched_args, shared_args, q_axis, qd_axis, kwargs, out_sharding, initial_check
+):
     """The vmapped simulation; with ``initial_check = (t0, tolerance)`` also every member's
     initial-state diagnostics, returned as values for the host to raise (no callback)."""
+
     def one(q, qd, member_args):
         member_args = eqx.combine(member_args, shared_args)
         traj = simulate(system, q, qd, ts, args=member_args, **kwargs)
@@ -231,8 +235,7 @@ def simulate_batch(
     for name, x in (("q0", q0), ("qd0", qd0)):
         if x.ndim not in (1, 2):
             raise ValueError(
-                f"{name} must have shape (B, n) (one row per batch member) or (n,) (shared); "
-                f"got {x.shape}."
+                f"{name} must have shape (B, n) (one row per batch member) or (n,) (shared); got {x.shape}."
             )
     args = as_array_leaves(args)
     mask = _batched_mask(args, args_axes)
@@ -292,8 +295,9 @@ def simulate_batch(
             ts = place_batched(ts) if ts.ndim == 2 else place_shared(ts)
 
     if method == "ensemble":
-        out = run_ensemble(system, q0, qd0, ts, batched_args, shared_args, size + pad,
-                           simulate_kwargs, out_sharding, backend)
+        out = run_ensemble(
+            system, q0, qd0, ts, batched_args, shared_args, size + pad, simulate_kwargs, out_sharding, backend
+        )
         if pad:
             out = jax.tree.map(lambda x: x[:size] if isinstance(x, jax.Array) else x, out)
         return out
@@ -317,15 +321,24 @@ def simulate_batch(
             run_kwargs.update(check_initial_state=False)
     with failures.plain_errors() if concrete else contextlib.nullcontext():
         out, diagnostics = _run_batch(
-            system, q0, qd0, ts, batched_args, shared_args,
-            0 if q0.ndim == 2 else None, 0 if qd0.ndim == 2 else None,
-            run_kwargs, out_sharding, initial_check,
+            system,
+            q0,
+            qd0,
+            ts,
+            batched_args,
+            shared_args,
+            0 if q0.ndim == 2 else None,
+            0 if qd0.ndim == 2 else None,
+            run_kwargs,
+            out_sharding,
+            initial_check,
         )
         if concrete:  # compiled initial-state checks raise while we wait for the result
             jax.block_until_ready(out.failure.code)
     if pad:
-        out, diagnostics = jax.tree.map(lambda x: x[:size] if isinstance(x, jax.Array) else x,
-                                        (out, diagnostics))
+        out, diagnostics = jax.tree.map(
+            lambda x: x[:size] if isinstance(x, jax.Array) else x, (out, diagnostics)
+        )
     if initial_check is not None:
         checks.raise_for_initial_states(system, diagnostics, args, initial_check[1])
     if throw and out.failure is not None:
@@ -361,13 +374,13 @@ def _raise_for_local_members(failure) -> None:
                 f"Batch members {bad} (on this process) did not complete: failure codes "
                 f"{codes[codes != failures.NONE].tolist()} (1 non-finite, 2 max_steps, 3 solver, "
                 "4 max_segments, 5 step size collapsed). Pass throw=False and read "
-                "traj.failure.code.addressable_shards (or gather it) for the details.")
+                "traj.failure.code.addressable_shards (or gather it) for the details."
+            )
 
 
 def _member_args(batched_args, shared_args):
     """Host args with a leading batch axis on the batched leaves and size 1 on the shared ones
     (the layout :func:`jaxlag.failures.member` indexes)."""
     batched = jax.tree.map(np.asarray, batched_args)
-    shared = jax.tree.map(lambda x: np.asarray(x)[None] if eqx.is_array_like(x) else x,
-                          shared_args)
+    shared = jax.tree.map(lambda x: np.asarray(x)[None] if eqx.is_array_like(x) else x, shared_args)
     return eqx.combine(batched, shared)

@@ -85,8 +85,7 @@ class RK4(diffrax.AbstractERK):
 def tableau_of(solver) -> diffrax.ButcherTableau:
     """The explicit Butcher tableau of a diffrax solver, or a clear error."""
     tableau = getattr(solver, "tableau", None)
-    if isinstance(solver, diffrax.AbstractWrappedSolver) or not isinstance(
-            tableau, diffrax.ButcherTableau):
+    if isinstance(solver, diffrax.AbstractWrappedSolver) or not isinstance(tableau, diffrax.ButcherTableau):
         raise TypeError(
             f"The ensemble integrator needs an explicit Runge–Kutta solver with a Butcher tableau "
             f"(diffrax.Tsit5(), diffrax.Dopri5(), jl.RK4(), ...); {type(solver).__name__} has none. "
@@ -114,8 +113,13 @@ class Tableau(eqx.Module):
         def floats(x):
             return tuple(float(v) for v in np.asarray(x))
 
-        return cls(floats(tableau.c), tuple(floats(a) for a in tableau.a_lower),
-                   floats(tableau.b_sol), floats(tableau.b_error), bool(tableau.fsal))
+        return cls(
+            floats(tableau.c),
+            tuple(floats(a) for a in tableau.a_lower),
+            floats(tableau.b_sol),
+            floats(tableau.b_error),
+            bool(tableau.fsal),
+        )
 
 
 class EnsembleSettings(eqx.Module):
@@ -145,16 +149,18 @@ def _static_float(value, name):
     try:
         return float(np.asarray(value))
     except Exception:  # noqa: BLE001
-        raise TypeError(f"PIDController.{name} must be a concrete number for the ensemble "
-                        f"integrator; got {value!r}.") from None
+        raise TypeError(
+            f"PIDController.{name} must be a concrete number for the ensemble integrator; got {value!r}."
+        ) from None
 
 
 def make_settings(solver, stepsize_controller, max_steps, adjoint, throw) -> EnsembleSettings:
     """Validate the diffrax objects and turn them into :class:`EnsembleSettings`."""
     tableau = tableau_of(solver)
     if max_steps is None or int(max_steps) < 1:
-        raise ValueError(f"max_steps must be a positive integer for the ensemble integrator; got "
-                         f"{max_steps!r}.")
+        raise ValueError(
+            f"max_steps must be a positive integer for the ensemble integrator; got {max_steps!r}."
+        )
     if adjoint is None or isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint):
         kind = "checkpointed"
     elif isinstance(adjoint, diffrax.ForwardMode):
@@ -164,8 +170,9 @@ def make_settings(solver, stepsize_controller, max_steps, adjoint, throw) -> Ens
             "adjoint must be diffrax.RecursiveCheckpointAdjoint() (reverse mode, the default) or "
             f"diffrax.ForwardMode() (forward mode) for the ensemble integrator; got {adjoint!r}."
         )
-    common = dict(tableau=Tableau.from_diffrax(tableau), max_steps=int(max_steps), loop_kind=kind,
-                  throw=bool(throw))
+    common = dict(
+        tableau=Tableau.from_diffrax(tableau), max_steps=int(max_steps), loop_kind=kind, throw=bool(throw)
+    )
     if isinstance(stepsize_controller, diffrax.ConstantStepSize):
         return EnsembleSettings(adaptive=False, error_order=0.0, **common)
     if type(stepsize_controller) is not diffrax.PIDController:
@@ -182,11 +189,15 @@ def make_settings(solver, stepsize_controller, max_steps, adjoint, throw) -> Ens
             "diffrax.Dopri5())."
         )
     if controller.norm is not optx.rms_norm:
-        raise ValueError("The ensemble integrator uses diffrax's default RMS error norm; a custom "
-                         "PIDController.norm is not supported (use method='vmap').")
+        raise ValueError(
+            "The ensemble integrator uses diffrax's default RMS error norm; a custom "
+            "PIDController.norm is not supported (use method='vmap')."
+        )
     if not controller.force_dtmin:
-        raise ValueError("PIDController(force_dtmin=False) is not supported by the ensemble "
-                         "integrator (use method='vmap').")
+        raise ValueError(
+            "PIDController(force_dtmin=False) is not supported by the ensemble "
+            "integrator (use method='vmap')."
+        )
     error_order = controller.error_order
     if error_order is None:
         error_order = solver.error_order(diffrax.ODETerm(lambda t, y, a: y))
@@ -229,8 +240,7 @@ class BatchedField(eqx.Module):
     def _system(self, constant_mass):
         if constant_mass is None:
             return self.system
-        return eqx.tree_at(lambda s: s.constant_mass, self.system, constant_mass,
-                           is_leaf=lambda x: x is None)
+        return eqx.tree_at(lambda s: s.constant_mass, self.system, constant_mass, is_leaf=lambda x: x is None)
 
     def _args(self, member):
         return eqx.combine(member, self.shared_args)
@@ -279,8 +289,9 @@ def rk_step(field, tableau, t, h, y, f0):
 
 
 def select(mask, new, old):
-    return jax.tree.map(lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b),
-                        new, old)
+    return jax.tree.map(
+        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -305,8 +316,8 @@ def constant_loop(field, settings, ts, y0, steps_per_interval, inner, uniform):
     tableau = settings.tableau
     fsal = tableau.fsal
     m = jnp.asarray(steps_per_interval, jnp.int32).T  # (T-1, B)
-    starts = ts[:, :-1].T                  # (T-1, B)
-    h_all = (jnp.diff(ts, axis=1).T / m.astype(ts.dtype))
+    starts = ts[:, :-1].T  # (T-1, B)
+    h_all = jnp.diff(ts, axis=1).T / m.astype(ts.dtype)
 
     @jax.checkpoint
     def step(carry, j, t_start, h, m_k):
@@ -336,8 +347,11 @@ def constant_loop(field, settings, ts, y0, steps_per_interval, inner, uniform):
     f0 = field(ts[:, 0], y0) if fsal else None
     _, saved = jax.lax.scan(interval, (y0, f0), (starts, h_all, m))
     counts = jnp.sum(m, axis=0, dtype=jnp.int32)
-    return saved, {"num_steps": counts, "num_accepted_steps": counts,
-                   "num_rejected_steps": jnp.zeros_like(counts)}, jnp.ones(counts.shape, bool)
+    return (
+        saved,
+        {"num_steps": counts, "num_accepted_steps": counts, "num_rejected_steps": jnp.zeros_like(counts)},
+        jnp.ones(counts.shape, bool),
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -362,8 +376,11 @@ def _initial_step(field, settings, t0, y0, f0):
     f1 = field(t0 + h0, y1)
     d2 = _rms(jax.tree.map(lambda a, b, s: (a - b) / s, f1, f0, scale), size) / h0
     max_d = jnp.maximum(d1, d2)
-    h1 = jnp.where(max_d <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3),
-                   (0.01 / jnp.where(max_d <= 1e-15, 1.0, max_d)) ** (1 / settings.error_order))
+    h1 = jnp.where(
+        max_d <= 1e-15,
+        jnp.maximum(1e-6, h0 * 1e-3),
+        (0.01 / jnp.where(max_d <= 1e-15, 1.0, max_d)) ** (1 / settings.error_order),
+    )
     return jax.lax.stop_gradient(jnp.minimum(100 * h0, h1))
 
 
@@ -392,9 +409,19 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
     beta3 = settings.dcoeff / p
     ones = jnp.ones((batch,), dtype)
     zero = jnp.zeros((batch,), jnp.int32)
-    init = dict(t=t0, dt=dt, y=y0, f=f0 if fsal else None, k=jnp.ones((batch,), jnp.int32),
-                saves=saves, inv=ones, inv_prev=ones, at_dtmin=jnp.zeros((batch,), bool),
-                accepted=zero, rejected=zero)
+    init = dict(
+        t=t0,
+        dt=dt,
+        y=y0,
+        f=f0 if fsal else None,
+        k=jnp.ones((batch,), jnp.int32),
+        saves=saves,
+        inv=ones,
+        inv_prev=ones,
+        at_dtmin=jnp.zeros((batch,), bool),
+        accepted=zero,
+        rejected=zero,
+    )
 
     def cond(c):
         return jnp.any(c["k"] < num_saves)
@@ -414,7 +441,8 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
         # cotangents from the norm of a vanishing error.
         scaled = jax.tree.map(
             lambda e, a, b: e / (settings.atol + jnp.maximum(jnp.abs(a), jnp.abs(b)) * settings.rtol),
-            *jax.lax.stop_gradient((error, y, y1)))
+            *jax.lax.stop_gradient((error, y, y1)),
+        )
         err = _rms(scaled, 2 * n)
         finite = jnp.all(jnp.isfinite(y1[0]), axis=1) & jnp.all(jnp.isfinite(y1[1]), axis=1)
         err = jnp.where(finite & jnp.isfinite(err), err, jnp.inf)
@@ -422,13 +450,16 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
         if settings.dtmin is not None:
             keep = keep | c["at_dtmin"]
         inv = jax.lax.stop_gradient(1 / err)
-        factor = settings.safety * inv ** beta1
+        factor = settings.safety * inv**beta1
         if beta2 != 0:
             factor = factor * c["inv"] ** beta2
         if beta3 != 0:
             factor = factor * c["inv_prev"] ** beta3
-        factor = jnp.clip(factor, jnp.where(keep, 1.0, settings.factormin),
-                          jnp.where(keep, settings.factormax, settings.safety))
+        factor = jnp.clip(
+            factor,
+            jnp.where(keep, 1.0, settings.factormin),
+            jnp.where(keep, settings.factormax, settings.safety),
+        )
         factor = jax.lax.stop_gradient(factor)
         dt_next = h * factor
         dt_next = jnp.where(keep & clipped, jnp.maximum(dt_next, c["dt"]), dt_next)
@@ -465,14 +496,18 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
 
     if settings.loop_kind == "checkpointed":
         # The saves are write-only buffers: the checkpoints hold the small loop state only.
-        final = eqxi.while_loop(cond, body, init, max_steps=settings.max_steps,
-                                buffers=lambda c: c["saves"], kind="checkpointed")
+        final = eqxi.while_loop(
+            cond, body, init, max_steps=settings.max_steps, buffers=lambda c: c["saves"], kind="checkpointed"
+        )
     else:
         final = eqxi.while_loop(cond, body, init, max_steps=settings.max_steps, kind="lax")
     done = final["k"] >= num_saves
     saved = tuple(jnp.moveaxis(s[:, 1:num_saves], 1, 0) for s in final["saves"])
-    stats = {"num_steps": final["accepted"] + final["rejected"],
-             "num_accepted_steps": final["accepted"], "num_rejected_steps": final["rejected"]}
+    stats = {
+        "num_steps": final["accepted"] + final["rejected"],
+        "num_accepted_steps": final["accepted"],
+        "num_rejected_steps": final["rejected"],
+    }
     return saved, stats, done
 
 
@@ -481,8 +516,7 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
 # --------------------------------------------------------------------------------------------
 
 
-def ensemble_problem(system, q0, qd0, ts, member_args, shared_args, baumgarte, projection, check,
-                     tolerance):
+def ensemble_problem(system, q0, qd0, ts, member_args, shared_args, baumgarte, projection, check, tolerance):
     """Checked initial states and the :class:`BatchedField` of a batch (inside ``jit``)."""
 
     def prepare(q, qd, t, member):
@@ -516,7 +550,8 @@ def check_finished(done, q, settings):
     if not settings.throw:
         return q
     return eqx.error_if(
-        q, ~jnp.all(done),
+        q,
+        ~jnp.all(done),
         f"simulate_batch(method='ensemble'): some members did not reach their last save time "
         f"within max_steps={settings.max_steps} loop iterations; increase max_steps (or loosen "
         "rtol/atol). Pass throw=False to get the partial result with traj.result per member.",
@@ -534,4 +569,3 @@ def as_member_times(ts, batch, dtype):
             f"got {ts.shape}."
         )
     return ts
-

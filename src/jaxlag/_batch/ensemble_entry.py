@@ -32,9 +32,22 @@ from .._trajectory import Trajectory
 
 _VMAP = "Use simulate_batch(..., method='vmap') (jax.vmap of jl.simulate), which supports it."
 _DEFAULTS = dict(
-    t0=None, t1=None, solver=None, stepsize_controller=None, dt0=None, saveat=None,
-    max_steps=2**16, adjoint=None, event=None, throw=True, progress_meter=None, baumgarte=None,
-    projection="auto", check_initial_state=True, constraint_tolerance=1e-8, events=(),
+    t0=None,
+    t1=None,
+    solver=None,
+    stepsize_controller=None,
+    dt0=None,
+    saveat=None,
+    max_steps=2**16,
+    adjoint=None,
+    event=None,
+    throw=True,
+    progress_meter=None,
+    baumgarte=None,
+    projection="auto",
+    check_initial_state=True,
+    constraint_tolerance=1e-8,
+    events=(),
 )
 
 
@@ -54,29 +67,51 @@ def unsupported(system, ts, kwargs) -> str | None:
     """Why ``method="ensemble"`` cannot run these options, or ``None``."""
     options = _options(system, kwargs)
     if system.unilateral:
-        return ("unilateral constraints switch per member at events; the ensemble integrator has "
-                "no event handling. " + _VMAP)
+        return (
+            "unilateral constraints switch per member at events; the ensemble integrator has "
+            "no event handling. " + _VMAP
+        )
     events = options["events"]
     if (isinstance(events, (tuple, list)) and len(events)) or not isinstance(events, (tuple, list)):
         return "jl.Event conditions are not supported by the ensemble integrator. " + _VMAP
     if options["event"] is not None:
         return "diffrax events are not supported by the ensemble integrator. " + _VMAP
-    if options["progress_meter"] is not None and not isinstance(options["progress_meter"],
-                                                                 diffrax.NoProgressMeter):
+    if options["progress_meter"] is not None and not isinstance(
+        options["progress_meter"], diffrax.NoProgressMeter
+    ):
         return "progress meters are not supported by the ensemble integrator. " + _VMAP
     saveat = options["saveat"]
     if saveat is not None:
         sub = saveat.subs
-        plain_t1 = (sub.t1 and not sub.t0 and sub.ts is None and not sub.steps
-                    and not saveat.dense and sub.fn is diffrax._saveat.save_y)
-        plain_ts = (not sub.t0 and not sub.t1 and sub.ts is not None and not sub.steps
-                    and not saveat.dense and sub.fn is diffrax._saveat.save_y)
+        plain_t1 = (
+            sub.t1
+            and not sub.t0
+            and sub.ts is None
+            and not sub.steps
+            and not saveat.dense
+            and sub.fn is diffrax._saveat.save_y
+        )
+        plain_ts = (
+            not sub.t0
+            and not sub.t1
+            and sub.ts is not None
+            and not sub.steps
+            and not saveat.dense
+            and sub.fn is diffrax._saveat.save_y
+        )
         if not (plain_t1 or plain_ts):
-            return ("the ensemble integrator saves at given times only: pass ts, or "
-                    "saveat=diffrax.SaveAt(t1=True) / SaveAt(ts=...). " + _VMAP)
+            return (
+                "the ensemble integrator saves at given times only: pass ts, or "
+                "saveat=diffrax.SaveAt(t1=True) / SaveAt(ts=...). " + _VMAP
+            )
     try:
-        make_settings(options["solver"], options["stepsize_controller"], options["max_steps"],
-                      options["adjoint"], options["throw"])
+        make_settings(
+            options["solver"],
+            options["stepsize_controller"],
+            options["max_steps"],
+            options["adjoint"],
+            options["throw"],
+        )
     except (TypeError, ValueError) as error:
         return str(error)
     if isinstance(options["stepsize_controller"], diffrax.ConstantStepSize):
@@ -84,8 +119,10 @@ def unsupported(system, ts, kwargs) -> str | None:
             return "diffrax.ConstantStepSize() needs dt0."
         times = _save_times(ts, options)
         if times is None or not is_concrete((times, options["dt0"])):
-            return ("constant steps need concrete save times and dt0 (the number of steps is "
-                    "static); pass them as numbers, not traced values. " + _VMAP)
+            return (
+                "constant steps need concrete save times and dt0 (the number of steps is "
+                "static); pass them as numbers, not traced values. " + _VMAP
+            )
     return None
 
 
@@ -115,8 +152,7 @@ def _save_times(ts, options):
     if saveat is not None and saveat.subs.ts is not None:
         if options["t0"] is None:
             return None
-        return jnp.concatenate([jnp.atleast_1d(jnp.asarray(options["t0"])),
-                                jnp.asarray(saveat.subs.ts)])
+        return jnp.concatenate([jnp.atleast_1d(jnp.asarray(options["t0"])), jnp.asarray(saveat.subs.ts)])
     if options["t0"] is None or options["t1"] is None:
         return None
     if is_concrete((options["t0"], options["t1"])):  # stays on the host, also under jit
@@ -134,13 +170,31 @@ def _broadcast_members(tree, batch):
     return jax.tree.map(expand, tree)
 
 
-def _run_impl(system, q0, qd0, ts, batched_args, shared_args, settings, dt0, grid, baumgarte,
-         projection, check, tolerance, keep_first, out_sharding, backend):
-    field, y0 = ensemble_problem(system, q0, qd0, ts, batched_args, shared_args, baumgarte,
-                                 projection, check, tolerance)
+def _run_impl(
+    system,
+    q0,
+    qd0,
+    ts,
+    batched_args,
+    shared_args,
+    settings,
+    dt0,
+    grid,
+    baumgarte,
+    projection,
+    check,
+    tolerance,
+    keep_first,
+    out_sharding,
+    backend,
+):
+    field, y0 = ensemble_problem(
+        system, q0, qd0, ts, batched_args, shared_args, baumgarte, projection, check, tolerance
+    )
     if backend in ("pallas", "pallas-interpret"):
-        saved, stats, done = integrate_pallas(field, settings, ts, y0, grid,
-                                              interpret=backend == "pallas-interpret")
+        saved, stats, done = integrate_pallas(
+            field, settings, ts, y0, grid, interpret=backend == "pallas-interpret"
+        )
     else:
         saved, stats, done = integrate_ensemble(field, settings, ts, y0, dt0, grid)
     q, qd = (jnp.moveaxis(x, 0, 1) for x in saved)  # (B, T-1, n)
@@ -153,18 +207,35 @@ def _run_impl(system, q0, qd0, ts, batched_args, shared_args, settings, dt0, gri
     q = check_finished(done, q, settings)
     batch = q.shape[0]
     stats = {**stats, "max_steps": jnp.full((batch,), settings.max_steps, jnp.int32)}
-    result = jax.vmap(lambda d: diffrax.RESULTS.where(d, diffrax.RESULTS.successful,
-                                                      diffrax.RESULTS.max_steps_reached))(done)
+    result = jax.vmap(
+        lambda d: diffrax.RESULTS.where(d, diffrax.RESULTS.successful, diffrax.RESULTS.max_steps_reached)
+    )(done)
     args = _broadcast_members(shared_args, batch)
     args = eqx.combine(batched_args, args)
     system_arrays, system_static = eqx.partition(system, eqx.is_array)
     system_arrays = _broadcast_members(system_arrays, batch)
-    out = Trajectory(t, q, qd, args, stats, result, system_arrays, active=None, events=None,
-                     failure=None, system_static=system_static)
+    out = Trajectory(
+        t,
+        q,
+        qd,
+        args,
+        stats,
+        result,
+        system_arrays,
+        active=None,
+        events=None,
+        failure=None,
+        system_static=system_static,
+    )
     if out_sharding is not None:
         out = jax.tree.map(
-            lambda x: jax.lax.with_sharding_constraint(x, out_sharding)
-            if isinstance(x, jax.Array) and x.ndim >= 1 else x, out)
+            lambda x: (
+                jax.lax.with_sharding_constraint(x, out_sharding)
+                if isinstance(x, jax.Array) and x.ndim >= 1
+                else x
+            ),
+            out,
+        )
     return out
 
 
@@ -186,12 +257,18 @@ def _kernel_lowers(call) -> Exception | None:
     return None
 
 
-def run_ensemble(system, q0, qd0, ts, batched_args, shared_args, batch, kwargs, out_sharding,
-                 backend) -> Trajectory:
+def run_ensemble(
+    system, q0, qd0, ts, batched_args, shared_args, batch, kwargs, out_sharding, backend
+) -> Trajectory:
     """``simulate_batch(..., method="ensemble")`` after the batch inputs have been prepared."""
     options = _options(system, kwargs)
-    settings = make_settings(options["solver"], options["stepsize_controller"],
-                             options["max_steps"], options["adjoint"], options["throw"])
+    settings = make_settings(
+        options["solver"],
+        options["stepsize_controller"],
+        options["max_steps"],
+        options["adjoint"],
+        options["throw"],
+    )
     reason = unsupported(system, ts, kwargs)
     if reason is not None:
         raise ValueError("simulate_batch(method='ensemble'): " + reason)
@@ -223,26 +300,40 @@ def run_ensemble(system, q0, qd0, ts, batched_args, shared_args, batch, kwargs, 
     if not settings.adaptive:
         m, inner = constant_grid(host, float(options["dt0"]))
         # The 4th entry: every member has the same save times (the lane-wise Pallas kernel).
-        grid = (jnp.asarray(m, jnp.int32), inner, bool(np.all(m == inner)),
-                bool(np.all(host == host[:1])))
+        grid = (jnp.asarray(m, jnp.int32), inner, bool(np.all(m == inner)), bool(np.all(host == host[:1])))
         if int(m.sum(axis=1).max()) > settings.max_steps:
             raise ValueError(
                 f"Constant steps of dt0={options['dt0']} need {int(m.sum(axis=1).max())} steps, more "
                 f"than max_steps={settings.max_steps}."
             )
     if backend not in ("auto", "xla", "pallas", "pallas-interpret"):
-        raise ValueError(f"backend must be 'auto', 'xla', 'pallas' or 'pallas-interpret'; got "
-                         f"{backend!r}.")
+        raise ValueError(f"backend must be 'auto', 'xla', 'pallas' or 'pallas-interpret'; got {backend!r}.")
     if backend == "auto":
         backend = "xla"
     if backend.startswith("pallas") and settings.adaptive:
-        raise ValueError("backend='pallas' integrates constant steps only "
-                         "(diffrax.ConstantStepSize()); use backend='xla' for adaptive steps.")
+        raise ValueError(
+            "backend='pallas' integrates constant steps only "
+            "(diffrax.ConstantStepSize()); use backend='xla' for adaptive steps."
+        )
     dt0 = options["dt0"]
     dt0 = None if dt0 is None else jnp.asarray(dt0, q0.dtype)
-    call = (system, q0, qd0, times, batched_args, shared_args, settings, dt0, grid,
-            options["baumgarte"], projection, bool(options["check_initial_state"]),
-            options["constraint_tolerance"], keep_first, out_sharding)
+    call = (
+        system,
+        q0,
+        qd0,
+        times,
+        batched_args,
+        shared_args,
+        settings,
+        dt0,
+        grid,
+        options["baumgarte"],
+        projection,
+        bool(options["check_initial_state"]),
+        options["constraint_tolerance"],
+        keep_first,
+        out_sharding,
+    )
     if backend == "pallas":
         error = _kernel_lowers((*call, backend))
         if error is not None:
@@ -250,7 +341,8 @@ def run_ensemble(system, q0, qd0, ts, batched_args, shared_args, batch, kwargs, 
             warnings.warn(
                 f"simulate_batch(method='ensemble', backend='pallas'): the kernel did not lower "
                 f"({type(error).__name__}: {message}); using the XLA loop.",
-                RuntimeWarning, stacklevel=3,
+                RuntimeWarning,
+                stacklevel=3,
             )
             backend = "xla"
     return _run(*call, backend)

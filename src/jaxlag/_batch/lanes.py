@@ -27,12 +27,14 @@ import jax.extend.core as jcore
 import jax.numpy as jnp
 import numpy as np
 
-_ELEMENTWISE = frozenset("""
+_ELEMENTWISE = frozenset(
+    """
 abs acos acosh add add_any and asin asinh atan atan2 atanh cbrt ceil clamp convert_element_type
 copy copy_p cos cosh div eq erf erf_inv erfc exp exp2 expm1 floor ge gt integer_pow is_finite le
 lgamma log log1p logistic lt max min mul ne neg nextafter not or pow reduce_precision rem round
 rsqrt select_n sign sin sinh sqrt square sub tan tanh xor
-""".split())
+""".split()
+)
 
 
 def columns(x) -> np.ndarray:
@@ -99,8 +101,8 @@ def _dot_general(lhs, rhs, dimension_numbers, **_):
     rhs = np.transpose(rhs, list(rb) + rf + list(rc))
     nb, nk = len(lb), len(lc)
     batch_shape = lhs.shape[:nb]
-    lhs_free, rhs_free = lhs.shape[nb:lhs.ndim - nk], rhs.shape[nb:rhs.ndim - nk]
-    contract = lhs.shape[lhs.ndim - nk:]
+    lhs_free, rhs_free = lhs.shape[nb : lhs.ndim - nk], rhs.shape[nb : rhs.ndim - nk]
+    contract = lhs.shape[lhs.ndim - nk :]
     out = np.empty(batch_shape + lhs_free + rhs_free, dtype=object)
     for b in np.ndindex(*batch_shape):
         for i in np.ndindex(*lhs_free):
@@ -112,7 +114,7 @@ def _dot_general(lhs, rhs, dimension_numbers, **_):
 
 def _reduce(entries_op, operand, axes):
     moved = np.moveaxis(operand, axes, tuple(range(operand.ndim - len(axes), operand.ndim)))
-    keep = moved.shape[:operand.ndim - len(axes)]
+    keep = moved.shape[: operand.ndim - len(axes)]
     out = np.empty(keep, dtype=object)
     for index in np.ndindex(*keep):
         out[index] = functools.reduce(entries_op, list(moved[index].ravel()))
@@ -169,8 +171,11 @@ def _structural(name, params, operands):
     x = operands[0] if operands else None
     if name == "slice":
         strides = params["strides"] or (1,) * x.ndim
-        return x[tuple(slice(a, b, s) for a, b, s in
-                       zip(params["start_indices"], params["limit_indices"], strides))]
+        return x[
+            tuple(
+                slice(a, b, s) for a, b, s in zip(params["start_indices"], params["limit_indices"], strides)
+            )
+        ]
     if name == "squeeze":
         return np.squeeze(x, axis=tuple(params["dimensions"]))
     if name == "expand_dims":
@@ -198,14 +203,20 @@ def _structural(name, params, operands):
     if name == "iota":
         values = np.broadcast_to(
             np.arange(params["shape"][params["dimension"]], dtype=params["dtype"]).reshape(
-                [-1 if d == params["dimension"] else 1 for d in range(len(params["shape"]))]),
-            params["shape"])
+                [-1 if d == params["dimension"] else 1 for d in range(len(params["shape"]))]
+            ),
+            params["shape"],
+        )
         return constant(values)
     if name == "dot_general":
         return _dot_general(*operands, **params)
     if name in ("cumsum", "cumprod", "cummax", "cummin"):
-        combine = {"cumsum": operator.add, "cumprod": operator.mul,
-                   "cummax": jnp.maximum, "cummin": jnp.minimum}[name]
+        combine = {
+            "cumsum": operator.add,
+            "cumprod": operator.mul,
+            "cummax": jnp.maximum,
+            "cummin": jnp.minimum,
+        }[name]
         axis, out = params["axis"], np.array(x, dtype=object)
         moved = np.moveaxis(out, axis, 0)  # a view: writing it fills ``out``
         order = range(moved.shape[0] - 2, -1, -1) if params.get("reverse") else range(1, moved.shape[0])
@@ -229,11 +240,13 @@ def _structural(name, params, operands):
     raise NotImplementedError(name)
 
 
-_STRUCTURAL = frozenset("""
+_STRUCTURAL = frozenset(
+    """
 slice squeeze expand_dims reshape broadcast_in_dim transpose concatenate stack unstack split rev pad
 iota
 dot_general reduce_sum reduce_max reduce_min cumsum cumprod cummax cummin cholesky triangular_solve
-""".split())
+""".split()
+)
 
 
 def evaluate(jaxpr: jcore.Jaxpr, consts, *args):
@@ -258,9 +271,17 @@ def evaluate(jaxpr: jcore.Jaxpr, consts, *args):
         elif name in _STRUCTURAL:
             result = _structural(name, eqn.params, operands)
             outs = result if isinstance(result, list) else [result]
-        elif inner is not None and name in ("pjit", "jit", "closed_call", "core_call",
-                                            "custom_jvp_call", "custom_vjp_call", "remat",
-                                            "checkpoint", "custom_vjp_call_jaxpr"):
+        elif inner is not None and name in (
+            "pjit",
+            "jit",
+            "closed_call",
+            "core_call",
+            "custom_jvp_call",
+            "custom_vjp_call",
+            "remat",
+            "checkpoint",
+            "custom_vjp_call_jaxpr",
+        ):
             closed = inner if hasattr(inner, "consts") else jcore.ClosedJaxpr(inner, ())
             outs = evaluate(closed.jaxpr, closed.consts, *operands)
         else:

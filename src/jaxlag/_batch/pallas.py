@@ -46,15 +46,20 @@ def _split_field(field):
     """``field``'s arrays as (per-member leaves, shared leaves) and a function rebuilding it."""
     per_member = (field.member_args, field.constant_mass)
     dynamic_members, static_members = eqx.partition(per_member, eqx.is_array)
-    rest = eqx.tree_at(lambda f: (f.member_args, f.constant_mass), field, (None, None),
-                       is_leaf=lambda x: x is None)
+    rest = eqx.tree_at(
+        lambda f: (f.member_args, f.constant_mass), field, (None, None), is_leaf=lambda x: x is None
+    )
     dynamic_shared, static_shared = eqx.partition(rest, eqx.is_array)
 
     def rebuild(members, shared):
         member_args, constant_mass = eqx.combine(members, static_members)
         base = eqx.combine(shared, static_shared)
-        return eqx.tree_at(lambda f: (f.member_args, f.constant_mass), base,
-                           (member_args, constant_mass), is_leaf=lambda x: x is None)
+        return eqx.tree_at(
+            lambda f: (f.member_args, f.constant_mass),
+            base,
+            (member_args, constant_mass),
+            is_leaf=lambda x: x is None,
+        )
 
     return dynamic_members, dynamic_shared, rebuild
 
@@ -101,7 +106,8 @@ def _kernel_integrate(field, settings, ts, y0, steps_per_interval, inner, unifor
     def unpack(member_vals, shared_vals):
         block_members = jax.tree.unflatten(member_def, [jnp.moveaxis(v, -1, 0) for v in member_vals])
         block_shared = jax.tree.unflatten(
-            shared_def, [v.reshape(()) if s else v for v, s in zip(shared_vals, scalar)])
+            shared_def, [v.reshape(()) if s else v for v, s in zip(shared_vals, scalar)]
+        )
         return rebuild(block_members, block_shared)
 
     def first(times, y, member_vals, shared_vals):
@@ -138,21 +144,30 @@ def _kernel_integrate(field, settings, ts, y0, steps_per_interval, inner, unifor
     counts_aval = jax.ShapeDtypeStruct((num_times - 1, block), jnp.int32)
     y_aval = (jax.ShapeDtypeStruct((block, n), y0[0].dtype),) * 2
     member_avals = [block_aval(x) for x in inputs[4:]]
-    shared_avals = [jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))
-                    for x in jax.tree.leaves(shared)]
+    shared_avals = [jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)) for x in jax.tree.leaves(shared)]
     first_jaxpr, f_shape = jax.make_jaxpr(first, return_shape=True)(
-        times_aval, y_aval, member_avals, shared_avals)
+        times_aval, y_aval, member_avals, shared_avals
+    )
     interval_jaxpr, carry_shape = jax.make_jaxpr(interval, return_shape=True)(
-        jax.ShapeDtypeStruct((), jnp.int32), y_aval, f_shape, times_aval, counts_aval,
-        member_avals, shared_avals)
+        jax.ShapeDtypeStruct((), jnp.int32),
+        y_aval,
+        f_shape,
+        times_aval,
+        counts_aval,
+        member_avals,
+        shared_avals,
+    )
     consts = [jnp.asarray(c) for c in (*first_jaxpr.consts, *interval_jaxpr.consts)]
     num_first = len(first_jaxpr.consts)
     carry_def = jax.tree.structure(carry_shape)
     consts_in = [c.reshape((1,)) if c.ndim == 0 else c for c in consts]
     consts_scalar = [c.ndim == 0 for c in consts]
 
-    in_specs = ([member_spec(x) for x in inputs] + [shared_spec(x) for x in shared_leaves]
-                + [shared_spec(x) for x in consts_in])
+    in_specs = (
+        [member_spec(x) for x in inputs]
+        + [shared_spec(x) for x in shared_leaves]
+        + [shared_spec(x) for x in consts_in]
+    )
     out_shape = [jax.ShapeDtypeStruct((num_times - 1, n, padded), y0[0].dtype)] * 2
     out_specs = [pl.BlockSpec((num_times - 1, n, block), lambda i: (0, 0, i))] * 2
     num_members_inputs = len(inputs)
@@ -161,21 +176,23 @@ def _kernel_integrate(field, settings, ts, y0, steps_per_interval, inner, unifor
     def kernel(*refs):
         q_ref, qd_ref, ts_ref, m_ref = refs[:4]
         member_vals = [r[...] for r in refs[4:num_members_inputs]]
-        shared_vals = [r[...] for r in refs[num_members_inputs:num_members_inputs + num_shared]]
-        const_refs = refs[num_members_inputs + num_shared:-2]
+        shared_vals = [r[...] for r in refs[num_members_inputs : num_members_inputs + num_shared]]
+        const_refs = refs[num_members_inputs + num_shared : -2]
         out_q, out_qd = refs[-2:]
         const_vals = [r[...].reshape(()) if s else r[...] for r, s in zip(const_refs, consts_scalar)]
-        times = ts_ref[...].T                 # (block, T)
-        counts = m_ref[...]                   # (T-1, block)
-        y = (q_ref[...].T, qd_ref[...].T)     # (block, n) while computing
+        times = ts_ref[...].T  # (block, T)
+        counts = m_ref[...]  # (T-1, block)
+        y = (q_ref[...].T, qd_ref[...].T)  # (block, n) while computing
         flat_data = jax.tree.leaves((times, counts, member_vals, shared_vals))
-        f0 = jax.core.eval_jaxpr(first_jaxpr.jaxpr, const_vals[:num_first],
-                                 *jax.tree.leaves((times, y, member_vals, shared_vals)))
+        f0 = jax.core.eval_jaxpr(
+            first_jaxpr.jaxpr, const_vals[:num_first], *jax.tree.leaves((times, y, member_vals, shared_vals))
+        )
         f0 = jax.tree.unflatten(jax.tree.structure(f_shape), f0)
 
         def one_interval(k, carry):
-            out = jax.core.eval_jaxpr(interval_jaxpr.jaxpr, const_vals[num_first:],
-                                      k, *jax.tree.leaves(carry), *flat_data)
+            out = jax.core.eval_jaxpr(
+                interval_jaxpr.jaxpr, const_vals[num_first:], k, *jax.tree.leaves(carry), *flat_data
+            )
             y, f = jax.tree.unflatten(carry_def, out)
             out_q[k] = y[0].T
             out_qd[k] = y[1].T
@@ -184,8 +201,13 @@ def _kernel_integrate(field, settings, ts, y0, steps_per_interval, inner, unifor
         jax.lax.fori_loop(jnp.int32(0), jnp.int32(num_times - 1), one_interval, (y, f0))
 
     out_q, out_qd = pl.pallas_call(
-        kernel, out_shape=out_shape, grid=(padded // block,), in_specs=in_specs,
-        out_specs=out_specs, interpret=interpret, name="jaxlag_ensemble",
+        kernel,
+        out_shape=out_shape,
+        grid=(padded // block,),
+        in_specs=in_specs,
+        out_specs=out_specs,
+        interpret=interpret,
+        name="jaxlag_ensemble",
         # Triton: it lowers float64 (Mosaic GPU, the default GPU lowering, loads no f64).
         compiler_params=triton.CompilerParams(num_warps=4),
     )(*inputs, *shared_leaves, *consts_in)
@@ -210,29 +232,40 @@ def _lanes_integrate(field, settings, ts, y0, inner, interpret, block):
 
     def member_field(t, y, member_vals, shared_vals):
         """The equations of one member, as a batch of one (the field's own code)."""
-        one = rebuild(jax.tree.unflatten(member_def, [v[None] for v in member_vals]),
-                      jax.tree.unflatten(shared_def, shared_vals))
+        one = rebuild(
+            jax.tree.unflatten(member_def, [v[None] for v in member_vals]),
+            jax.tree.unflatten(shared_def, shared_vals),
+        )
         return jax.tree.map(lambda x: x[0], one(t[None], (y[0][None], y[1][None])))
 
     def member_step(t, h, t1, y, f0, member_vals, shared_vals):
         def batched(tb, yb):
-            return jax.tree.map(lambda x: x[None], member_field(
-                tb[0], jax.tree.map(lambda x: x[0], yb), member_vals, shared_vals))
+            return jax.tree.map(
+                lambda x: x[None],
+                member_field(tb[0], jax.tree.map(lambda x: x[0], yb), member_vals, shared_vals),
+            )
 
-        y1, _, f_last = rk_step(batched, tableau, t[None], h[None],
-                                jax.tree.map(lambda x: x[None], y),
-                                jax.tree.map(lambda x: x[None], f0))
-        one = rebuild(jax.tree.unflatten(member_def, [v[None] for v in member_vals]),
-                      jax.tree.unflatten(shared_def, shared_vals))
+        y1, _, f_last = rk_step(
+            batched,
+            tableau,
+            t[None],
+            h[None],
+            jax.tree.map(lambda x: x[None], y),
+            jax.tree.map(lambda x: x[None], f0),
+        )
+        one = rebuild(
+            jax.tree.unflatten(member_def, [v[None] for v in member_vals]),
+            jax.tree.unflatten(shared_def, shared_vals),
+        )
         y1 = one.project(t1[None], y1)
         return jax.tree.map(lambda x: x[0], (y1, f_last))
-
 
     scalar = jnp.zeros((), ts.dtype)
     example_y = (y0[0][0], y0[1][0])
     example_members = [x[0] for x in member_leaves]
-    step_lanes = lanewise(member_step, scalar, scalar, scalar, example_y, example_y,
-                          example_members, shared_leaves)
+    step_lanes = lanewise(
+        member_step, scalar, scalar, scalar, example_y, example_y, example_members, shared_leaves
+    )
     field_lanes = lanewise(member_field, scalar, example_y, example_members, shared_leaves)
 
     # Inputs: 1-D columns of length B (members on the lanes) for every entry of the state and of
@@ -254,10 +287,13 @@ def _lanes_integrate(field, settings, ts, y0, inner, interpret, block):
     shapes = [x.shape[1:] for x in member_leaves], [jnp.shape(x) for x in shared_leaves]
 
     def kernel(*refs):
-        column_refs, times_ref, out_refs = refs[:len(flat_columns)], refs[len(flat_columns)], \
-            refs[len(flat_columns) + 1:]
+        column_refs, times_ref, out_refs = (
+            refs[: len(flat_columns)],
+            refs[len(flat_columns)],
+            refs[len(flat_columns) + 1 :],
+        )
         values = [r[...] for r in column_refs]
-        state, rest = values[:2 * n], values[2 * n:]
+        state, rest = values[: 2 * n], values[2 * n :]
 
         def objects(flat, shape):
             out = np.empty(shape, dtype=object)
@@ -268,24 +304,24 @@ def _lanes_integrate(field, settings, ts, y0, inner, interpret, block):
         member_objects, shared_objects, offset = [], [], 0
         for shape in shapes[0]:
             size = int(np.prod(shape, dtype=int))
-            member_objects.append(objects(rest[offset:offset + size], shape))
+            member_objects.append(objects(rest[offset : offset + size], shape))
             offset += size
         for shape in shapes[1]:
             size = int(np.prod(shape, dtype=int))
-            shared_objects.append(objects(rest[offset:offset + size], shape))
+            shared_objects.append(objects(rest[offset : offset + size], shape))
             offset += size
 
         def as_state(flat):
             return (objects(flat[:n], (n,)), objects(flat[n:], (n,)))
 
         def flatten(y):
-            return [jnp.broadcast_to(jnp.asarray(e, times.dtype), (block,))
-                    for part in y for e in part.ravel()]
+            return [
+                jnp.broadcast_to(jnp.asarray(e, times.dtype), (block,)) for part in y for e in part.ravel()
+            ]
 
         start_time = constant(times_ref[0])
         y = state
-        f = (flatten(field_lanes(start_time, as_state(y), member_objects, shared_objects))
-             if fsal else None)
+        f = flatten(field_lanes(start_time, as_state(y), member_objects, shared_objects)) if fsal else None
 
         def interval(k, carry):
             y, f = carry
@@ -300,8 +336,9 @@ def _lanes_integrate(field, settings, ts, y0, inner, interpret, block):
                     f0 = as_state(f)
                 else:
                     f0 = field_lanes(constant(t), as_state(y), member_objects, shared_objects)
-                y1, f_last = step_lanes(constant(t), constant(h), constant(t1), as_state(y), f0,
-                                        member_objects, shared_objects)
+                y1, f_last = step_lanes(
+                    constant(t), constant(h), constant(t1), as_state(y), f0, member_objects, shared_objects
+                )
                 return flatten(y1), (flatten(f_last) if fsal else f)
 
             y, f = jax.lax.fori_loop(0, inner, step, (y, f))
@@ -312,12 +349,16 @@ def _lanes_integrate(field, settings, ts, y0, inner, interpret, block):
         jax.lax.fori_loop(jnp.int32(0), jnp.int32(num_times - 1), interval, (y, f))
 
     outs = pl.pallas_call(
-        kernel, out_shape=out_shape, grid=(padded // block,),
-        in_specs=[column_spec] * len(flat_columns) + [times_spec], out_specs=out_specs,
-        interpret=interpret, name="jaxlag_ensemble_lanes",
+        kernel,
+        out_shape=out_shape,
+        grid=(padded // block,),
+        in_specs=[column_spec] * len(flat_columns) + [times_spec],
+        out_specs=out_specs,
+        interpret=interpret,
+        name="jaxlag_ensemble_lanes",
         compiler_params=triton.CompilerParams(num_warps=4),
     )(*flat_columns, times)
-    q = jnp.stack(outs[:n], axis=-1)[:, :batch]   # (T-1, B, n)
+    q = jnp.stack(outs[:n], axis=-1)[:, :batch]  # (T-1, B, n)
     qd = jnp.stack(outs[n:], axis=-1)[:, :batch]
     return q, qd
 
@@ -348,8 +389,7 @@ def integrate_pallas(field, settings, ts, y0, grid, interpret=False, block=None)
         t_members, t_shared, t_ts, t_y0, _ = tangents
 
         def xla(members, shared, ts, y0):
-            return constant_loop(rebuild(members, shared), settings, ts, y0, steps, inner,
-                                  uniform)[0]
+            return constant_loop(rebuild(members, shared), settings, ts, y0, steps, inner, uniform)[0]
 
         out = kernel_integrate(rebuild(members, shared), ts, y0, steps)
         _, tangent_out = jax.jvp(xla, (members, shared, ts, y0), (t_members, t_shared, t_ts, t_y0))
@@ -357,6 +397,5 @@ def integrate_pallas(field, settings, ts, y0, grid, interpret=False, block=None)
 
     saved = solve(members, shared, ts, y0, steps_per_interval)
     counts = jnp.sum(jnp.asarray(steps_per_interval, jnp.int32), axis=1, dtype=jnp.int32)
-    stats = {"num_steps": counts, "num_accepted_steps": counts,
-             "num_rejected_steps": jnp.zeros_like(counts)}
+    stats = {"num_steps": counts, "num_accepted_steps": counts, "num_rejected_steps": jnp.zeros_like(counts)}
     return saved, stats, jnp.ones(counts.shape, bool)

@@ -65,9 +65,7 @@ def mass_dependence(system, q, qd, t, args):
     """``(on_state, on_parameters)``: whether ``M`` may depend on ``(q, q̇, t)``, and on traced
     parameters (the arrays in ``args`` or in ``system``, or traced values its functions close
     over)."""
-    (on_q, on_qd, on_t, on_args, on_system), on_closure = may_depend(
-        _mass, (q, qd, t, args, system)
-    )
+    (on_q, on_qd, on_t, on_args, on_system), on_closure = may_depend(_mass, (q, qd, t, args, system))
     return on_q or on_qd or on_t, on_args or on_system or on_closure
 
 
@@ -78,6 +76,7 @@ def _concrete_mass(system, q, qd, t, args):
     ``system``) are replaced by zeros: nothing traced enters the evaluation except what the
     user's functions close over, on which ``M`` does not depend either.
     """
+
     def zeros(x):  # other arrays (integers, PRNG keys) are kept: M does not depend on them
         return np.zeros(jnp.shape(x), jnp.result_type(x)) if eqx.is_inexact_array(x) else x
 
@@ -103,8 +102,7 @@ def _constant_from_value(mass: np.ndarray) -> ConstantMass:
     """Invert a concrete ``M``; raise if it is singular (the Lagrangian is degenerate)."""
     mass = 0.5 * (mass + mass.T)  # a Hessian: symmetric up to rounding
     eigenvalues = np.linalg.eigvalsh(mass) if mass.size else np.ones(1)
-    if not (np.all(np.isfinite(mass))
-            and eigenvalues.min() > MASS_RCOND * np.abs(eigenvalues).max()):
+    if not (np.all(np.isfinite(mass)) and eigenvalues.min() > MASS_RCOND * np.abs(eigenvalues).max()):
         raise ValueError(
             "The mass matrix M = ∂²L/∂q̇² is singular or not positive definite (it is constant: "
             f"it depends on no coordinate, velocity or parameter; eigenvalues {eigenvalues}). The "

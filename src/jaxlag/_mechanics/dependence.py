@@ -17,10 +17,20 @@ import jax.numpy as jnp
 from jax.extend import core as jex_core
 
 #: Primitives whose single sub-jaxpr maps the equation's inputs to its outputs one to one.
-CALL_PRIMITIVES = frozenset({
-    "pjit", "jit", "closed_call", "core_call", "custom_jvp_call", "custom_vjp_call",
-    "custom_vjp_call_jaxpr", "checkpoint", "remat", "remat2",
-})
+CALL_PRIMITIVES = frozenset(
+    {
+        "pjit",
+        "jit",
+        "closed_call",
+        "core_call",
+        "custom_jvp_call",
+        "custom_vjp_call",
+        "custom_vjp_call_jaxpr",
+        "checkpoint",
+        "remat",
+        "remat2",
+    }
+)
 
 
 def output_dependence(jaxpr, input_flags, const_flags) -> list[bool]:
@@ -36,8 +46,11 @@ def output_dependence(jaxpr, input_flags, const_flags) -> list[bool]:
         out_flags = None
         if eqn.primitive.name in CALL_PRIMITIVES:
             bodies = list(jex_core.jaxprs_in_params(eqn.params))
-            if (len(bodies) == 1 and len(bodies[0].invars) == len(in_flags)
-                    and len(bodies[0].outvars) == len(eqn.outvars)):
+            if (
+                len(bodies) == 1
+                and len(bodies[0].invars) == len(in_flags)
+                and len(bodies[0].outvars) == len(eqn.outvars)
+            ):
                 body = bodies[0]
                 out_flags = output_dependence(body, in_flags, [False] * len(body.constvars))
         if out_flags is None:

@@ -40,8 +40,7 @@ def deactivate(rows, rhs, active):
     return rows * weight[:, None], rhs * weight, jnp.diag(1.0 - weight)
 
 
-def solve_kkt(mass, force, rows, rhs, least_squares: bool = False, active=None,
-              diagonal_mass: bool = False):
+def solve_kkt(mass, force, rows, rhs, least_squares: bool = False, active=None, diagonal_mass: bool = False):
     """Solve ``M q̈ = F + Gᵀ Λ``, ``G q̈ = c``; return ``(q̈, Λ)``.
 
     ``mass`` is ``M`` (n, n), factored here (a division if ``diagonal_mass``), or a function
@@ -76,7 +75,6 @@ def accelerations_and_multipliers(system, q, qd, t, args, baumgarte=None, active
     rows, rhs = constraint_rows(system, q, qd, t, args, baumgarte)
     m_h = system.num_holonomic(q, t, args)
     if active is not None:
-        active = jnp.concatenate([jnp.asarray(active, q.dtype),
-                                  jnp.ones((rows.shape[0] - m_h,), q.dtype)])
+        active = jnp.concatenate([jnp.asarray(active, q.dtype), jnp.ones((rows.shape[0] - m_h,), q.dtype)])
     qdd, multipliers = solve_kkt(solve_mass, force, rows, rhs, system.least_squares, active)
     return qdd, multipliers[:m_h], multipliers[m_h:]

@@ -49,9 +49,7 @@ def _velocity_terms(system, q, qd, t, args):
     def gradient(q_, qd_, t_):
         return jax.grad(lambda a, b, c: L(a, b, t=c, args=args), argnums=(0, 1))(q_, qd_, t_)
 
-    (dL_dq, p), (_, dp_motion) = jax.jvp(
-        gradient, (q, qd, t), (qd, jnp.zeros_like(qd), jnp.ones_like(t))
-    )
+    (dL_dq, p), (_, dp_motion) = jax.jvp(gradient, (q, qd, t), (qd, jnp.zeros_like(qd), jnp.ones_like(t)))
     return dL_dq, p, dp_motion
 
 

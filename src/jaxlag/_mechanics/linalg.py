@@ -71,6 +71,7 @@ def spd_solver(a, diagonal: bool = False):
         def solve_matrix(rhs):
             return inverse[:, None] * rhs
     elif n == 0:
+
         def solve_matrix(rhs):
             return rhs
     elif n <= UNROLL_MAX:

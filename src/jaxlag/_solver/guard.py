@@ -36,14 +36,12 @@ def _guarded_init(controller, terms, t0, t1, y0, dt0, args, func, error_order):
     q, qd = y0
     t0 = jnp.asarray(t0, q.dtype)
     scale = jnp.maximum(jnp.maximum(jnp.abs(t0), jnp.abs(t1)), jnp.abs(t1 - t0))
-    record = jax.lax.stop_gradient((t0, jnp.asarray(tnext - t0, q.dtype), q, qd,
-                                    jnp.asarray(scale, q.dtype)))
+    record = jax.lax.stop_gradient((t0, jnp.asarray(tnext - t0, q.dtype), q, qd, jnp.asarray(scale, q.dtype)))
     state = GuardState(inner, *record[:4], jnp.asarray(False), jnp.asarray(False), record[4])
     return tnext, state
 
 
-def _guarded_adapt(controller, adaptive, t0, t1, y0, y1_candidate, args, y_error, error_order,
-                   state):
+def _guarded_adapt(controller, adaptive, t0, t1, y0, y1_candidate, args, y_error, error_order, state):
     keep, tprev, tnext, jump, inner, result = controller.adapt_step_size(
         t0, t1, y0, y1_candidate, args, y_error, error_order, state.inner
     )
@@ -60,8 +58,9 @@ def _guarded_adapt(controller, adaptive, t0, t1, y0, y1_candidate, args, y_error
     keep = keep & ~fail
     result = diffrax.RESULTS.where(fail, diffrax.RESULTS.dt_min_reached, result)
     # The record is for messages, never differentiated: no tangents carried through the loop.
-    record = jax.lax.stop_gradient((jnp.where(keep, t1, t0).astype(q0.dtype),
-                                    jnp.asarray(dt, q0.dtype), q0, qd0))
+    record = jax.lax.stop_gradient(
+        (jnp.where(keep, t1, t0).astype(q0.dtype), jnp.asarray(dt, q0.dtype), q0, qd0)
+    )
     new = GuardState(inner, *record, fail, fail & ~finite, state.scale)
     return keep, tprev, tnext, jump, new, result
 
@@ -77,10 +76,10 @@ class FiniteStepGuard(ForwardingAdaptiveController):
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
         return _guarded_init(self.controller, terms, t0, t1, y0, dt0, args, func, error_order)
 
-    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order,
-                        controller_state):
-        return _guarded_adapt(self.controller, True, t0, t1, y0, y1_candidate, args, y_error,
-                              error_order, controller_state)
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
+        return _guarded_adapt(
+            self.controller, True, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state
+        )
 
 
 class FiniteFixedStepGuard(diffrax.AbstractStepSizeController):
@@ -94,10 +93,10 @@ class FiniteFixedStepGuard(diffrax.AbstractStepSizeController):
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
         return _guarded_init(self.controller, terms, t0, t1, y0, dt0, args, func, error_order)
 
-    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order,
-                        controller_state):
-        return _guarded_adapt(self.controller, False, t0, t1, y0, y1_candidate, args, y_error,
-                              error_order, controller_state)
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
+        return _guarded_adapt(
+            self.controller, False, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state
+        )
 
 
 def guard(controller):

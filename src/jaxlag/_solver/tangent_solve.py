@@ -71,8 +71,7 @@ def push(fn, primals, tangents, in_axes=0):
     def one(tangent):
         return jax.jvp(arrays_only, primals, tangent, has_aux=True)
 
-    out, tangents_out, arrays = jax.vmap(one, in_axes=(in_axes,), out_axes=(None, 0, None))(
-        tangents)
+    out, tangents_out, arrays = jax.vmap(one, in_axes=(in_axes,), out_axes=(None, 0, None))(tangents)
     return out, tangents_out, eqx.combine(arrays, held["static"])
 
 
@@ -96,8 +95,7 @@ class TangentTerm(diffrax.AbstractTerm):
 
     def prod(self, vf, control):
         value, tangents = vf
-        return (self.term.prod(value, control),
-                jax.vmap(lambda v: self.term.prod(v, control))(tangents))
+        return (self.term.prod(value, control), jax.vmap(lambda v: self.term.prod(v, control))(tangents))
 
 
 @eqx.filter_jit
@@ -111,8 +109,9 @@ def _variational_field(tangent_term, t, y, args):
         term = eqx.combine(term_dyn, term_static)
         return term.vf(t, y, eqx.combine(args_dyn, args_static)), None
 
-    value, tangents, _ = push(field, (term_dyn, y, args_dyn),
-                              (tangent_term.term_tangent, tangents_y, tangent_term.args_tangent))
+    value, tangents, _ = push(
+        field, (term_dyn, y, args_dyn), (tangent_term.term_tangent, tangents_y, tangent_term.args_tangent)
+    )
     return value, tangents
 
 
@@ -163,19 +162,22 @@ def _tangent_step(stepper, terms, t0, t1, y0, args, solver_state, made_jump):
     if type(solver) is not ProjectedSolver:
         return solver.step(terms, t0, t1, y0, args, solver_state, made_jump)
     y1, y_error, dense_info, solver_state, result = solver.solver.step(
-        terms, t0, t1, y0, args, solver_state, made_jump)
+        terms, t0, t1, y0, args, solver_state, made_jump
+    )
     tangent_term, _ = _unwrap(terms)
     system_dyn, system_static = partition_inexact(solver.system)
     args_dyn, args_static = partition_inexact(args)
 
     def projected(system_dyn, y, args_dyn):
         system = eqx.combine(system_dyn, system_static)
-        q, qd = solver.projection(system, y[0], y[1], t1, eqx.combine(args_dyn, args_static),
-                                  solver.active)
+        q, qd = solver.projection(system, y[0], y[1], t1, eqx.combine(args_dyn, args_static), solver.active)
         return (q, qd), None
 
-    y1, tangents, _ = push(projected, (system_dyn, y1[0], args_dyn),
-                           (stepper.projection_tangent, y1[1], tangent_term.args_tangent))
+    y1, tangents, _ = push(
+        projected,
+        (system_dyn, y1[0], args_dyn),
+        (stepper.projection_tangent, y1[1], tangent_term.args_tangent),
+    )
     return (y1, tangents), y_error, dense_info, solver_state, result
 
 
@@ -206,11 +208,10 @@ class PrimalStepSizes(diffrax.AbstractStepSizeController):
             primal = _primal_func(func, jax.tree.map(jnp.zeros_like, y0[1]))
         return self.controller.init(terms, t0, t1, y0[0], dt0, args, primal, error_order)
 
-    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order,
-                        controller_state):
-        return self.controller.adapt_step_size(t0, t1, y0[0], y1_candidate[0], args,
-                                               _primal_error(y_error), error_order,
-                                               controller_state)
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
+        return self.controller.adapt_step_size(
+            t0, t1, y0[0], y1_candidate[0], args, _primal_error(y_error), error_order, controller_state
+        )
 
 
 class PrimalAdaptiveStepSizes(ForwardingAdaptiveController):

@@ -178,8 +178,9 @@ def noether_rate(system, generator: Callable, q, qd, t=0.0, args=None):
 @compilation.filter_jit
 def _noether_rate(system, generator, q, qd, t, args):
     fn, xi = _generator(generator, q, t, args)
-    _, xi_dot = jax.jvp(lambda x, s: jnp.asarray(fn(x, t=s, args=args), q.dtype), (q, t),
-                        (qd, jnp.ones_like(t)))
+    _, xi_dot = jax.jvp(
+        lambda x, s: jnp.asarray(fn(x, t=s, args=args), q.dtype), (q, t), (qd, jnp.ones_like(t))
+    )
     _, delta_l = jax.jvp(lambda x, v: system.lagrangian(x, v, t=t, args=args), (q, qd), (xi, xi_dot))
     forces = _mechanics.nonconservative_forces(system, q, qd, t, args)
     if system.is_constrained:
@@ -258,8 +259,9 @@ def _summarize(values):
     initial = values[0]
     deviation = jnp.max(jnp.abs(values - initial))
     size = jnp.max(jnp.abs(values))
-    relative = jnp.where(size > 0, deviation / jnp.where(size > 0, size, 1.0),
-                         jnp.where(deviation > 0, jnp.inf, 0.0))
+    relative = jnp.where(
+        size > 0, deviation / jnp.where(size > 0, size, 1.0), jnp.where(deviation > 0, jnp.inf, 0.0)
+    )
     return ConservedQuantity(values, initial, deviation, relative)
 
 
@@ -291,8 +293,7 @@ def conservation_report(
     system, args = trajectory.system, trajectory.args
     report: dict[str, ConservedQuantity] = {"energy": _summarize(trajectory.energy)}
     if ignorable is None:
-        ignorable = ignorable_coordinates(system, trajectory.q[0], trajectory.qd[0],
-                                          trajectory.t[0], args)
+        ignorable = ignorable_coordinates(system, trajectory.q[0], trajectory.qd[0], trajectory.t[0], args)
     p = trajectory.momenta
     for i in ignorable:
         report[f"p[{int(i)}]"] = _summarize(p[:, int(i)])

@@ -89,7 +89,7 @@ class _Layout(eqx.Module):
 
     def split(self, z):
         k, j = len(self.free), len(self.momentum_indices)
-        return (z[:k], z[k:k + j], z[k + j:k + j + self.m_h], z[k + j + self.m_h:])
+        return (z[:k], z[k : k + j], z[k + j : k + j + self.m_h], z[k + j + self.m_h :])
 
     def state(self, z, q0, qd0):
         q_free, qd_free, _, _ = self.split(z)
@@ -154,12 +154,15 @@ def _solve(system, q0, qd0, t, args, target, layout, solver, max_steps, toleranc
         v0 = v0 - jnp.linalg.solve(jax.jacfwd(momentum_error)(v0), momentum_error(v0))
         qd0 = qd0.at[idx].set(v0)
     multipliers0 = _static_multipliers(system, layout, q0, qd0, t, args)
-    z0 = jnp.concatenate([
-        q0[jnp.asarray(layout.free, int)] if layout.free else jnp.zeros((0,), q0.dtype),
-        qd0[jnp.asarray(layout.momentum_indices, int)] if layout.momentum_indices
-        else jnp.zeros((0,), q0.dtype),
-        multipliers0,
-    ])
+    z0 = jnp.concatenate(
+        [
+            q0[jnp.asarray(layout.free, int)] if layout.free else jnp.zeros((0,), q0.dtype),
+            qd0[jnp.asarray(layout.momentum_indices, int)]
+            if layout.momentum_indices
+            else jnp.zeros((0,), q0.dtype),
+            multipliers0,
+        ]
+    )
     # Equilibrate the rows (their units differ: forces, lengths, momenta) by the row norms of the
     # Jacobian at the guess, so that Newton's test |residual| < atol reads "the next step is below
     # atol" in every row. A constant scale does not move the root; its gradient is cut so that
@@ -186,15 +189,23 @@ def _solve(system, q0, qd0, t, args, target, layout, solver, max_steps, toleranc
     checks = dict(
         finite=jnp.all(jnp.isfinite(z)) & jnp.all(jnp.isfinite(qdd)),
         steady=jnp.max(jnp.abs(qdd), initial=0.0) <= tolerance * (1.0 + accel_scale),
-        on_manifold=jnp.max(jnp.concatenate([jnp.abs(f), jnp.abs(f_dot), jnp.abs(g),
-                                             jnp.zeros((1,), q.dtype)])) <= tolerance,
+        on_manifold=jnp.max(
+            jnp.concatenate([jnp.abs(f), jnp.abs(f_dot), jnp.abs(g), jnp.zeros((1,), q.dtype)])
+        )
+        <= tolerance,
         momenta=momentum_error <= tolerance,
-        f=f, f_dot=f_dot, g=g,
+        f=f,
+        f_dot=f_dot,
+        g=g,
     )
     # Newton's residual test can fail to be met when the iteration starts at the root to rounding
     # (the residual cannot drop below the rounding of the cancelling terms); the state decides.
-    solved = checks["finite"] & checks["momenta"] & checks["on_manifold"] & (
-        (solution.result == optx.RESULTS.successful) | checks["steady"])
+    solved = (
+        checks["finite"]
+        & checks["momenta"]
+        & checks["on_manifold"]
+        & ((solution.result == optx.RESULTS.successful) | checks["steady"])
+    )
     result = optx.RESULTS.where(solved, optx.RESULTS.successful, solution.result)
     return Equilibrium(q, qd, lam, mu, qdd, residual, result, solution.stats["num_steps"]), checks
 
@@ -249,15 +260,18 @@ def equilibrium(
     momenta = dict(momenta or {})
     momentum_indices = _indices(tuple(momenta), n, "momenta")
     momenta = {int(k) % n: v for k, v in momenta.items()}
-    target = (jnp.stack([jnp.asarray(momenta[k], q.dtype) for k in momentum_indices])
-              if momentum_indices else jnp.zeros((0,), q.dtype))
+    target = (
+        jnp.stack([jnp.asarray(momenta[k], q.dtype) for k in momentum_indices])
+        if momentum_indices
+        else jnp.zeros((0,), q.dtype)
+    )
     free = tuple(i for i in range(n) if i not in fixed)
     m_h = system.num_holonomic(q, t, args)
     m_v = 0
     if system.velocity_constraints is not None:
-        m_v = jax.eval_shape(
-            lambda a, b: _constraints.velocity_residual(system, a, b, t, args), q, qd
-        ).shape[0]
+        m_v = jax.eval_shape(lambda a, b: _constraints.velocity_residual(system, a, b, t, args), q, qd).shape[
+            0
+        ]
     unknowns = len(free) + len(momentum_indices) + m_h + m_v
     if unknowns == 0:
         raise ValueError("equilibrium: nothing to solve for (every coordinate is fixed).")
@@ -296,11 +310,16 @@ def equilibrium(
                 "by itself); fix only coordinates the Lagrangian does not depend on."
             )
         return eq
-    q_out = eqx.error_if(eq.q, failed,
-                         "jaxlag.equilibrium: the root find did not converge (or its solution is "
-                         "off the constraint manifold); try a closer guess, or fix the coordinates "
-                         "of a non-isolated equilibrium (`fixed=`).")
-    q_out = eqx.error_if(q_out, not_steady,
-                         "jaxlag.equilibrium: the solution is not steady (q̈ ≠ 0): a coordinate in "
-                         "`fixed` is not cyclic.")
+    q_out = eqx.error_if(
+        eq.q,
+        failed,
+        "jaxlag.equilibrium: the root find did not converge (or its solution is "
+        "off the constraint manifold); try a closer guess, or fix the coordinates "
+        "of a non-isolated equilibrium (`fixed=`).",
+    )
+    q_out = eqx.error_if(
+        q_out,
+        not_steady,
+        "jaxlag.equilibrium: the solution is not steady (q̈ ≠ 0): a coordinate in `fixed` is not cyclic.",
+    )
     return eqx.tree_at(lambda e: e.q, eq, q_out)

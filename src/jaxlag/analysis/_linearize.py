@@ -234,8 +234,9 @@ def linearize(
         if bool(rank_deficient):
             raise _raise_rank("state")
         return lin
-    checked = eqx.error_if(lin.state_matrix, rank_deficient,
-                           "jaxlag.linearize: redundant constraints (rank-deficient Jacobian).")
+    checked = eqx.error_if(
+        lin.state_matrix, rank_deficient, "jaxlag.linearize: redundant constraints (rank-deficient Jacobian)."
+    )
     return eqx.tree_at(lambda x: x.state_matrix, lin, checked)
 
 
@@ -252,16 +253,16 @@ def _linearize(system, q, qd, t, args, inputs):
     input_matrix = None
     if inputs is not None:
         input_matrix = _input_derivative(lambda a: field(y, a), args, inputs)
-    constraint_jacobian = jax.jacfwd(
-        lambda z: _state_constraints(system, z[:n], z[n:], t, args)
-    )(y)
+    constraint_jacobian = jax.jacfwd(lambda z: _state_constraints(system, z[:n], z[n:], t, args))(y)
     rank_deficient = _constraint_rank_check(constraint_jacobian)
     basis = tangent_basis(constraint_jacobian)
     left = _left_inverse(basis)
     reduced = left @ state_matrix @ basis
     reduced_input = None if input_matrix is None else left @ input_matrix
-    return (Linearization(q, qd, t, state_matrix, input_matrix, basis, reduced, reduced_input),
-            rank_deficient)
+    return (
+        Linearization(q, qd, t, state_matrix, input_matrix, basis, reduced, reduced_input),
+        rank_deficient,
+    )
 
 
 class NormalModes(eqx.Module):
@@ -326,10 +327,10 @@ def normal_modes(system, q, t=0.0, args=None, *, tolerance: float = 1e-6) -> Nor
                 "jaxlag.analysis.linearize for a steady motion."
             )
         return modes
-    w2 = eqx.error_if(modes.frequencies_squared, rank_deficient,
-                      "jaxlag.normal_modes: redundant constraints.")
-    w2 = eqx.error_if(w2, not_equilibrium,
-                      "jaxlag.normal_modes: q is not an equilibrium at rest (q̈ ≠ 0).")
+    w2 = eqx.error_if(
+        modes.frequencies_squared, rank_deficient, "jaxlag.normal_modes: redundant constraints."
+    )
+    w2 = eqx.error_if(w2, not_equilibrium, "jaxlag.normal_modes: q is not an equilibrium at rest (q̈ ≠ 0).")
     return eqx.tree_at(lambda x: x.frequencies_squared, modes, w2)
 
 
@@ -351,8 +352,7 @@ def _normal_modes(system, q, t, args, tolerance):
     stiffness_t = -basis.T @ mass @ stiffness_full @ basis
     stiffness_t = 0.5 * (stiffness_t + stiffness_t.T)
     chol = jnp.linalg.cholesky(mass_t)
-    inv_chol = jax.scipy.linalg.solve_triangular(chol, jnp.eye(chol.shape[0], dtype=q.dtype),
-                                                 lower=True)
+    inv_chol = jax.scipy.linalg.solve_triangular(chol, jnp.eye(chol.shape[0], dtype=q.dtype), lower=True)
     w2, vectors = jnp.linalg.eigh(inv_chol @ stiffness_t @ inv_chol.T)
     shapes = basis @ (inv_chol.T @ vectors)
     return NormalModes(w2, shapes, mass_t, stiffness_t, basis), qdd, rank_deficient, not_equilibrium

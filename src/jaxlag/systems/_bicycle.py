@@ -32,12 +32,32 @@ from .._system import System
 from ._common import model, parameters
 
 BENCHMARK = {
-    "w": 1.02, "c": 0.08, "lam": math.pi / 10, "g": 9.81,
-    "rR": 0.3, "mR": 2.0, "IRxx": 0.0603, "IRyy": 0.12,
-    "xB": 0.3, "zB": -0.9, "mB": 85.0, "IBxx": 9.2, "IByy": 11.0, "IBzz": 2.8, "IBxz": 2.4,
-    "xH": 0.9, "zH": -0.7, "mH": 4.0, "IHxx": 0.05892, "IHyy": 0.06, "IHzz": 0.00708,
+    "w": 1.02,
+    "c": 0.08,
+    "lam": math.pi / 10,
+    "g": 9.81,
+    "rR": 0.3,
+    "mR": 2.0,
+    "IRxx": 0.0603,
+    "IRyy": 0.12,
+    "xB": 0.3,
+    "zB": -0.9,
+    "mB": 85.0,
+    "IBxx": 9.2,
+    "IByy": 11.0,
+    "IBzz": 2.8,
+    "IBxz": 2.4,
+    "xH": 0.9,
+    "zH": -0.7,
+    "mH": 4.0,
+    "IHxx": 0.05892,
+    "IHyy": 0.06,
+    "IHzz": 0.00708,
     "IHxz": -0.00756,
-    "rF": 0.35, "mF": 3.0, "IFxx": 0.1405, "IFyy": 0.28,
+    "rF": 0.35,
+    "mF": 3.0,
+    "IFxx": 0.1405,
+    "IFyy": 0.28,
 }
 
 # Lean, steer and their rates among the state (q, q̇) of whipple_bicycle.
@@ -67,6 +87,7 @@ def whipple_bicycle() -> System:
     (lean rate, steer rate, speed). Upright straight-ahead motion at speed ``v`` is
     :func:`bicycle_upright_state`; its lean–steer eigenvalues are :func:`bicycle_eigenvalues`.
     """
+
     def p_of(args):
         return parameters(whipple_bicycle, args)
 
@@ -114,8 +135,9 @@ def whipple_bicycle() -> System:
         return centre, rotation @ axis_rotation("y", q[7])
 
     def wheel_inertia(xx, yy):
-        return lambda a: jnp.stack([jnp.asarray(p_of(a)[xx]), jnp.asarray(p_of(a)[yy]),
-                                    jnp.asarray(p_of(a)[xx])])
+        return lambda a: jnp.stack(
+            [jnp.asarray(p_of(a)[xx]), jnp.asarray(p_of(a)[yy]), jnp.asarray(p_of(a)[xx])]
+        )
 
     def body_inertia(prefix):
         return lambda a: _tensor(*(p_of(a)[prefix + k] for k in ("xx", "yy", "zz", "xz")))
@@ -135,8 +157,9 @@ def whipple_bicycle() -> System:
         return jnp.concatenate([rear_rolls(q, qd, 0.0, args), front_rolls(q, qd, 0.0, args)])
 
     return System(
-        lagrangian_from_positions(None, gravity=lambda a: p_of(a)["g"],
-                                  bodies=[wheel_r, frame_b, frame_h, wheel_f]),
+        lagrangian_from_positions(
+            None, gravity=lambda a: p_of(a)["g"], bodies=[wheel_r, frame_b, frame_h, wheel_f]
+        ),
         holonomic=contact.contact_height(wheel_f, lambda a: p_of(a)["rF"], axis=axle),
         velocity_constraints=rolling,
     )
@@ -172,8 +195,8 @@ def bicycle_eigenvalues(speed, args=None, *, return_residual: bool = False):
     q, qd = bicycle_upright_state(speed, args)
     lin = linearize(system, q, qd, args=args)
     select = jnp.asarray(_LATERAL)
-    projected = lin.basis[select]                                  # S E (4 × 10)
-    image = (lin.state_matrix @ lin.basis)[select]                 # S A E
+    projected = lin.basis[select]  # S E (4 × 10)
+    image = (lin.state_matrix @ lin.basis)[select]  # S A E
     lateral = image @ jnp.linalg.pinv(projected)
     values = jnp.linalg.eigvals(lateral)
     values = values[jnp.argsort(jnp.real(values))]

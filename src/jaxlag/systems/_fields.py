@@ -26,6 +26,7 @@ def kepler(form: str = "polar") -> System:
         return parameters(kepler, args)
 
     if form == "polar":
+
         def lagrangian(q, qd, args):
             p = p_of(args)
             r = q[0]
@@ -53,12 +54,12 @@ def charged_particle() -> System:
     ``E × B / |B|²``. The canonical momentum along ``B`` and, for ``E = 0``, the canonical
     angular momentum about ``B`` are Noether charges. Parameters: ``m``, ``charge``, ``B``, ``E``.
     """
+
     def lagrangian(q, qd, args):
         p = parameters(charged_particle, args)
         b = jnp.asarray(p["B"], q.dtype)
         e_field = jnp.asarray(p["E"], q.dtype)
         potential = 0.5 * jnp.cross(b, q)
-        return 0.5 * p["m"] * jnp.sum(qd**2) + p["charge"] * (jnp.dot(qd, potential)
-                                                              + jnp.dot(e_field, q))
+        return 0.5 * p["m"] * jnp.sum(qd**2) + p["charge"] * (jnp.dot(qd, potential) + jnp.dot(e_field, q))
 
     return System(lagrangian)

@@ -30,6 +30,7 @@ def _chain_system(factory, n: int, form: str, masses: Callable, lengths: Callabl
         return masses(parameters(factory, args))
 
     if form == "generalized":
+
         def positions(q, args):
             return planar_chain(q, lengths(parameters(factory, args)))
 
@@ -58,8 +59,9 @@ def simple_pendulum(form: str = "generalized") -> System:
 
     Small oscillations: ``ω = √(g/l)``. Parameters (``args``): ``m``, ``l``, ``g``.
     """
-    return _chain_system(simple_pendulum, 1, form, lambda p: jnp.reshape(p["m"], (1,)),
-                         lambda p: jnp.reshape(p["l"], (1,)))
+    return _chain_system(
+        simple_pendulum, 1, form, lambda p: jnp.reshape(p["m"], (1,)), lambda p: jnp.reshape(p["l"], (1,))
+    )
 
 
 @model({"m1": 1.0, "m2": 1.0, "l1": 1.0, "l2": 1.0, "g": 9.81})
@@ -73,8 +75,13 @@ def double_pendulum(form: str = "generalized") -> System:
     For ``m1 = m2``, ``l1 = l2 = l`` the normal-mode frequencies are ``ω² = (2 ∓ √2) g/l``.
     Parameters: ``m1``, ``m2``, ``l1``, ``l2``, ``g``.
     """
-    return _chain_system(double_pendulum, 2, form, lambda p: jnp.stack([p["m1"], p["m2"]]),
-                         lambda p: jnp.stack([p["l1"], p["l2"]]))
+    return _chain_system(
+        double_pendulum,
+        2,
+        form,
+        lambda p: jnp.stack([p["m1"], p["m2"]]),
+        lambda p: jnp.stack([p["l1"], p["l2"]]),
+    )
 
 
 @model({"m": 1.0, "l": 1.0, "g": 9.81})
@@ -90,9 +97,13 @@ def n_link_pendulum(n: int, form: str = "generalized") -> System:
     n = int(n)
     if n < 1:
         raise ValueError(f"n_link_pendulum needs n >= 1 links; got {n}.")
-    return _chain_system(n_link_pendulum, n, form,
-                         lambda p: jnp.broadcast_to(jnp.asarray(p["m"]), (n,)),
-                         lambda p: jnp.broadcast_to(jnp.asarray(p["l"]), (n,)))
+    return _chain_system(
+        n_link_pendulum,
+        n,
+        form,
+        lambda p: jnp.broadcast_to(jnp.asarray(p["m"]), (n,)),
+        lambda p: jnp.broadcast_to(jnp.asarray(p["l"]), (n,)),
+    )
 
 
 @model({"m": 1.0, "l": 1.0, "g": 9.81})
@@ -114,19 +125,23 @@ def spherical_pendulum(form: str = "generalized") -> System:
         return parameters(spherical_pendulum, args)
 
     if form == "generalized":
+
         def positions(q, args):
             th, ph = q
             s = jnp.sin(th)
             return p_of(args)["l"] * jnp.stack([s * jnp.cos(ph), s * jnp.sin(ph), -jnp.cos(th)])
 
-        return System(lagrangian_from_positions(positions, lambda a: p_of(a)["m"],
-                                                gravity=lambda a: p_of(a)["g"]))
+        return System(
+            lagrangian_from_positions(positions, lambda a: p_of(a)["m"], gravity=lambda a: p_of(a)["g"])
+        )
 
     def rod(q, args):
         return jnp.reshape(jnp.linalg.norm(q) - p_of(args)["l"], (1,))
 
-    return System(lagrangian_from_positions(lambda q: q, lambda a: p_of(a)["m"],
-                                            gravity=lambda a: p_of(a)["g"]), holonomic=rod)
+    return System(
+        lagrangian_from_positions(lambda q: q, lambda a: p_of(a)["m"], gravity=lambda a: p_of(a)["g"]),
+        holonomic=rod,
+    )
 
 
 @model({"m": 1.0, "l": 1.0, "g": 0.0})
@@ -153,7 +168,8 @@ def free_chain(n: int, dim: int = 2) -> System:
         return jnp.linalg.norm(x[1:] - x[:-1], axis=-1) - jnp.broadcast_to(p_of(args)["l"], (n - 1,))
 
     lagrangian = lagrangian_from_positions(
-        points, lambda a: jnp.broadcast_to(jnp.asarray(p_of(a)["m"]), (n,)),
+        points,
+        lambda a: jnp.broadcast_to(jnp.asarray(p_of(a)["m"]), (n,)),
         gravity=lambda a: p_of(a)["g"],
     )
     return System(lagrangian, holonomic=links)
@@ -174,6 +190,7 @@ def cart_pole(control: Callable | None = None) -> System:
     for a linearization's input matrix with ``inputs=lambda a: a["force"]``). Extra keys in
     ``args`` are allowed (controller gains). Parameters: ``M``, ``m``, ``l``, ``g``, ``force``.
     """
+
     def p_of(args):
         return parameters(cart_pole, args)
 
@@ -185,10 +202,12 @@ def cart_pole(control: Callable | None = None) -> System:
         half = 0.5 * p_of(args)["l"]
         return jnp.stack([x + half * jnp.sin(th), half * jnp.cos(th), -th])
 
-    pole = RigidBody2D(pole_pose, mass=lambda a: p_of(a)["m"],
-                       inertia=lambda a: p_of(a)["m"] * p_of(a)["l"] ** 2 / 12.0)
-    lagrangian = lagrangian_from_positions(cart, lambda a: p_of(a)["M"],
-                                           gravity=lambda a: p_of(a)["g"], bodies=[pole])
+    pole = RigidBody2D(
+        pole_pose, mass=lambda a: p_of(a)["m"], inertia=lambda a: p_of(a)["m"] * p_of(a)["l"] ** 2 / 12.0
+    )
+    lagrangian = lagrangian_from_positions(
+        cart, lambda a: p_of(a)["M"], gravity=lambda a: p_of(a)["g"], bodies=[pole]
+    )
     user = wrap_state_function(control, "cart-pole control") if control is not None else None
 
     def forces(q, qd, t, args):

@@ -65,8 +65,9 @@ def heavy_top(form: str = "euler") -> System:
         return jnp.stack([jnp.asarray(p["I1"]), jnp.asarray(p["I1"]), jnp.asarray(p["I3"])])
 
     top = RigidBody3D(pose, mass=lambda a: parameters(heavy_top, a)["m"], inertia=inertia)
-    lagrangian = lagrangian_from_positions(None, gravity=lambda a: parameters(heavy_top, a)["g"],
-                                           bodies=[top])
+    lagrangian = lagrangian_from_positions(
+        None, gravity=lambda a: parameters(heavy_top, a)["g"], bodies=[top]
+    )
     return System(lagrangian, holonomic=holonomic)
 
 
@@ -97,8 +98,17 @@ def torque_free_body(form: str = "euler") -> System:
     return System(lagrangian_from_positions(None, bodies=[body]), holonomic=holonomic)
 
 
-@model({"m": 1.0, "l": 0.25, "g": 9.81, "I1": 0.02, "I3": 0.01,
-        "inner": (0.004, 0.002, 0.004), "outer": (0.006, 0.006, 0.004)})
+@model(
+    {
+        "m": 1.0,
+        "l": 0.25,
+        "g": 9.81,
+        "I1": 0.02,
+        "I3": 0.01,
+        "inner": (0.004, 0.002, 0.004),
+        "outer": (0.006, 0.006, 0.004),
+    }
+)
 def gyroscope() -> System:
     r"""A gyroscope in a Cardan suspension: a chain of three bodies turning about one point.
 
@@ -111,6 +121,7 @@ def gyroscope() -> System:
     the energy, ``p_α`` and ``p_γ = I3 (γ̇ + α̇ cos β)``. Parameters: ``m``, ``l``, ``g``, ``I1``,
     ``I3``, ``inner``, ``outer``.
     """
+
     def p_of(args):
         return parameters(gyroscope, args)
 
@@ -154,6 +165,7 @@ def rolling_disk_3d() -> System:
     and the friction force is the centripetal force of the centre, ``N = m g``.
     Parameters: ``m``, ``R``, ``g``.
     """
+
     def p_of(args):
         return parameters(rolling_disk_3d, args)
 
@@ -188,6 +200,7 @@ def ball_on_turntable() -> System:
     solid ball), whatever the initial velocity; the circle's centre is fixed.
     Parameters: ``m``, ``R``, ``Omega``, ``k``.
     """
+
     def p_of(args):
         return parameters(ball_on_turntable, args)
 
@@ -208,5 +221,6 @@ def ball_on_turntable() -> System:
         lagrangian_from_positions(None, bodies=[ball]),
         holonomic=lambda q: jnp.reshape(q[2:6] @ q[2:6] - 1.0, (1,)),
         velocity_constraints=contact.rolling_without_slipping(
-            ball, lambda a: p_of(a)["R"], shape="sphere", surface_velocity=table),
+            ball, lambda a: p_of(a)["R"], shape="sphere", surface_velocity=table
+        ),
     )

@@ -24,11 +24,13 @@ def rolling_disk() -> System:
     ``θ̇`` and ``φ̇`` stay constant: the contact point runs on a circle of radius
     ``R θ̇/φ̇`` (a line if ``φ̇ = 0``); the energy is conserved. Parameters: ``m``, ``R``.
     """
+
     def lagrangian(q, qd, args):
         p = parameters(rolling_disk, args)
         m, r = p["m"], p["R"]
-        return 0.5 * m * (qd[0] ** 2 + qd[1] ** 2) + 0.25 * m * r**2 * qd[3] ** 2 \
-            + 0.125 * m * r**2 * qd[2] ** 2
+        return (
+            0.5 * m * (qd[0] ** 2 + qd[1] ** 2) + 0.25 * m * r**2 * qd[3] ** 2 + 0.125 * m * r**2 * qd[2] ** 2
+        )
 
     def rolling(q, qd, args):
         r = parameters(rolling_disk, args)["R"]
@@ -48,6 +50,7 @@ def disk_on_incline() -> System:
     Closed forms: ``s̈ = ⅔ g sin α`` and ``λ = −⅓ m g sin α`` (the friction force, up the slope).
     Parameters: ``m``, ``R``, ``g``, ``alpha``.
     """
+
     def p_of(args):
         return parameters(disk_on_incline, args)
 
@@ -55,14 +58,16 @@ def disk_on_incline() -> System:
         a = p_of(args)["alpha"]
         return jnp.stack([q[0] * jnp.cos(a), -q[0] * jnp.sin(a), -q[1]])
 
-    disk = RigidBody2D(pose, mass=lambda a: p_of(a)["m"],
-                       inertia=lambda a: 0.5 * p_of(a)["m"] * p_of(a)["R"] ** 2)
+    disk = RigidBody2D(
+        pose, mass=lambda a: p_of(a)["m"], inertia=lambda a: 0.5 * p_of(a)["m"] * p_of(a)["R"] ** 2
+    )
 
     def rolls(q, args):
         return jnp.reshape(q[0] - p_of(args)["R"] * q[1], (1,))
 
-    return System(lagrangian_from_positions(None, gravity=lambda a: p_of(a)["g"], bodies=[disk]),
-                  holonomic=rolls)
+    return System(
+        lagrangian_from_positions(None, gravity=lambda a: p_of(a)["g"], bodies=[disk]), holonomic=rolls
+    )
 
 
 @model({"m": 1.0, "I": 1.0, "g": 9.81, "alpha": 0.5})
@@ -78,10 +83,14 @@ def knife_edge() -> System:
     ``x = (g sin α / 2ω²) sin²ωt`` and ``y = (g sin α / 2ω²)(ωt − ½ sin 2ωt)``: the skate
     drifts across the slope instead of sliding down. Parameters: ``m``, ``I``, ``g``, ``alpha``.
     """
+
     def lagrangian(q, qd, args):
         p = parameters(knife_edge, args)
-        return 0.5 * p["m"] * (qd[0] ** 2 + qd[1] ** 2) + 0.5 * p["I"] * qd[2] ** 2 \
+        return (
+            0.5 * p["m"] * (qd[0] ** 2 + qd[1] ** 2)
+            + 0.5 * p["I"] * qd[2] ** 2
             + p["m"] * p["g"] * jnp.sin(p["alpha"]) * q[0]
+        )
 
     def blade(q, qd):
         return jnp.reshape(-qd[0] * jnp.sin(q[2]) + qd[1] * jnp.cos(q[2]), (1,))

@@ -39,6 +39,7 @@ def bead_on_hoop(form: str = "generalized") -> System:
     mass = lambda a: p_of(a)["m"]  # noqa: E731
     gravity = lambda a: p_of(a)["g"]  # noqa: E731
     if form == "generalized":
+
         def positions(q, t, args):
             p = p_of(args)
             return spherical(p["R"], jnp.pi - q[0], p["omega"] * t)
@@ -78,6 +79,7 @@ def bead_on_rotating_parabola(form: str = "generalized") -> System:
     mass = lambda a: p_of(a)["m"]  # noqa: E731
     gravity = lambda a: p_of(a)["g"]  # noqa: E731
     if form == "generalized":
+
         def positions(q, t, args):
             p = p_of(args)
             return cylindrical(q[0], p["omega"] * t, p["c"] * q[0] ** 2)
@@ -117,16 +119,20 @@ def particle_on_cone(form: str = "generalized") -> System:
     mass = lambda a: p_of(a)["m"]  # noqa: E731
     gravity = lambda a: p_of(a)["g"]  # noqa: E731
     if form == "generalized":
+
         def positions(q, args):
             return spherical(q[0], p_of(args)["alpha"], q[1])
 
         return System(lagrangian_from_positions(positions, mass, gravity=gravity))
     if form == "spherical":
+
         def cone(q, args):
             return jnp.reshape(q[1] - p_of(args)["alpha"], (1,))
 
-        return System(lagrangian_from_positions(lambda q: spherical(q[0], q[1], q[2]), mass,
-                                                gravity=gravity), holonomic=cone)
+        return System(
+            lagrangian_from_positions(lambda q: spherical(q[0], q[1], q[2]), mass, gravity=gravity),
+            holonomic=cone,
+        )
 
     def surface(q, args):
         a = p_of(args)["alpha"]
@@ -157,18 +163,21 @@ def particle_on_sphere(form: str = "spherical", unilateral: bool = False) -> Sys
     gravity = lambda a: p_of(a)["g"]  # noqa: E731
     one_sided = (0,) if unilateral else ()
     if form == "spherical":
+
         def sphere(q, args):
             return jnp.reshape(q[0] - p_of(args)["R"], (1,))
 
-        lagrangian = lagrangian_from_positions(lambda q: spherical(q[0], q[1], q[2]), mass,
-                                               gravity=gravity)
+        lagrangian = lagrangian_from_positions(lambda q: spherical(q[0], q[1], q[2]), mass, gravity=gravity)
         return System(lagrangian, holonomic=sphere, unilateral=one_sided)
 
     def sphere_c(q, args):
         return jnp.reshape(jnp.linalg.norm(q) - p_of(args)["R"], (1,))
 
-    return System(lagrangian_from_positions(lambda q: q, mass, gravity=gravity),
-                  holonomic=sphere_c, unilateral=one_sided)
+    return System(
+        lagrangian_from_positions(lambda q: q, mass, gravity=gravity),
+        holonomic=sphere_c,
+        unilateral=one_sided,
+    )
 
 
 @model({"m": 1.0, "a": 1.0})
@@ -188,6 +197,7 @@ def spiral(form: str = "polar") -> System:
         return parameters(spiral, args)
 
     if form == "generalized":
+
         def lagrangian(q, qd, args):
             p = p_of(args)
             return 0.5 * p["m"] * p["a"] ** 2 * (1.0 + q[0] ** 2) * qd[0] ** 2
