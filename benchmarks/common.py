@@ -39,9 +39,8 @@ def _pin_to_last_core() -> int | None:
 
 CORE = _pin_to_last_core()
 _FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
-# Compile times are measured from scratch: no persistent compilation cache (jaxlag would enable
-# one in the user's cache directory on import; see jaxlag._compile).
-os.environ.setdefault("JAXLAG_COMPILATION_CACHE", "0")
+# Compile times are measured from scratch: jaxlag turns on no persistent compilation cache
+# unless asked (jl.enable_compilation_cache), and this process does not ask.
 if _FLAGS not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _FLAGS).strip()
 

@@ -1,4 +1,5 @@
-"""Every ```python block of README.md runs, on its own, in a fresh namespace, with no preamble.
+"""Every ```python block of README.md and of the pages under docs/ runs, on its own, in a fresh
+namespace, with no preamble.
 
 So the README cannot drift from the code: a renamed function, a changed signature or a snippet that
 relies on names defined in another block fails here. Each block is one test whose id is the heading
@@ -13,6 +14,7 @@ restores it afterwards) so that a block relying on the test suite's ``conftest.p
 import os
 import pathlib
 import re
+import subprocess
 import sys
 
 os.environ.setdefault("MPLBACKEND", "Agg")  # before anything imports pyplot: no windows, no display
@@ -54,6 +56,8 @@ def _test_id(heading, index):
 
 
 BLOCKS = python_blocks(README.read_text(encoding="utf-8"))
+DOCS = sorted((README.parent / "docs").glob("*.md"))
+DOC_BLOCKS = [(page, *block) for page in DOCS for block in python_blocks(page.read_text("utf-8"))]
 
 
 def test_the_readme_has_python_blocks():
@@ -76,13 +80,38 @@ def x64_off():
 @pytest.mark.parametrize(
     "heading, index, first_line, source", BLOCKS, ids=[_test_id(b[0], b[1]) for b in BLOCKS]
 )
-def test_readme_block_runs(heading, index, first_line, source, x64_off):
-    if "jax" in source:
+def test_readme_block_runs(heading, index, first_line, source, x64_off, tmp_path):
+    _run_block(README, heading, index, first_line, source, tmp_path)
+
+
+@pytest.mark.parametrize(
+    "page, heading, index, first_line, source",
+    DOC_BLOCKS,
+    ids=[f"{b[0].stem}-{_test_id(b[1], b[2])}" for b in DOC_BLOCKS],
+)
+def test_docs_block_runs(page, heading, index, first_line, source, x64_off, tmp_path):
+    _run_block(page, heading, index, first_line, source, tmp_path)
+
+
+def test_docs_pages_exist():
+    assert {p.stem for p in DOCS} >= {"compile-time", "changelog"}
+
+
+def _run_block(path, heading, index, first_line, source, tmp_path):
+    if "jax." in source:
         assert 'jax.config.update("jax_enable_x64", True)' in source, (
-            f"README.md line {first_line} ({heading!r}): the block uses JAX but does not enable x64 itself"
+            f"{path.name} line {first_line} ({heading!r}): the block uses JAX but does not enable x64 itself"
         )
-    # Line numbers in a traceback point into README.md.
-    code = compile("\n" * (first_line - 1) + source, str(README), "exec")
+    if "enable_compilation_cache" in source:
+        # It changes JAX's configuration for the whole process: run it in its own process, with
+        # a cache directory of its own.
+        env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path)}
+        out = subprocess.run([sys.executable, "-c", source], env=env, capture_output=True,
+                             text=True, timeout=600)
+        assert out.returncode == 0, f"{path.name} line {first_line}:\n{out.stderr[-3000:]}"
+        return
+    # Line numbers in a traceback point into the page.
+    code = compile("\n" * (first_line - 1) + source, str(path), "exec")
     namespace = {"__name__": f"readme_block_{index}"}
     try:
         exec(code, namespace)
