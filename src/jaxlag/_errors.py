@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import contextlib
 import functools as ft
-import re
+import threading
 from typing import Any
 
 import diffrax
@@ -236,7 +236,7 @@ def describe(failure: Failure, system=None, args=None) -> str:
         return (
             f"The simulation needed more than max_segments = {failure.max_segments} "
             "segments (releases, contacts and events) before the end time; it reached "
-            f"t = {t:.10g} of [{t0:g}, {t1:g}]. Increase max_segments."
+            f"t = {t:.10g} of [{t0:g}, {t1:g}]. Increase it: events=jl.Events(..., max_segments=...)."
         )
     if code == SOLVER:
         text = _result_text(int(failure.result))
@@ -357,8 +357,11 @@ def raise_if_failed(failure: Failure, system=None, args=None, *, args_batched=Fa
         raise SimulationError(text)
 
 
-_ERRORS = {"ValueError": ValueError, "TypeError": TypeError, "SimulationError": SimulationError}
-_MARKER = re.compile(r"(ValueError|TypeError|SimulationError): jaxlag: (.*)", re.DOTALL)
+# The exception a compiled check raised last, with jaxlag's message: the host callback runs on
+# XLA's thread and JAX re-raises it wrapped in a runtime error; :func:`plain_errors` re-raises
+# the original (as equinox does for its own errors) instead of reading it back from the text.
+_raised: list[Exception] = []
+_raised_lock = threading.Lock()
 
 
 @contextlib.contextmanager
@@ -366,19 +369,24 @@ def plain_errors():
     """Inside: a jaxlag error raised by a compiled program (wrapped by JAX in a runtime error
     with a traceback of the callback) is re-raised as the plain exception with jaxlag's message.
     For entry points that run their own compiled program eagerly (``simulate_batch``)."""
+    with _raised_lock:
+        _raised.clear()
     try:
         yield
-    except jax.errors.JaxRuntimeError as error:
-        found = _MARKER.search(str(error))
-        if found is None:
+    except jax.errors.JaxRuntimeError:
+        with _raised_lock:
+            original = _raised.pop() if _raised else None
+            _raised.clear()
+        if original is None:
             raise
-        text = found.group(2).split("\n--------------------")[0].strip()
-        raise _ERRORS[found.group(1)](text) from None
+        raise original from None
 
 
 def _report(report, payload, value):
     text = report(jax.tree.map(np.asarray, payload))
     if text is not None:
+        with _raised_lock:
+            _raised.append(report.error(text))
         raise report.error("jaxlag: " + text)
     return value
 
