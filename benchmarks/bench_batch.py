@@ -77,7 +77,10 @@ def run():
             for name, fn in [
                 ("(a) explicit formula, vmap", explicit_batch(nsteps)),
                 ("jaxlag simulate_batch", jaxlag_batch(system, nsteps)),
-                ("jaxlag simulate_batch, no check", jaxlag_batch(system, nsteps, check_initial_state=False)),
+                (
+                    "jaxlag simulate_batch, no check",
+                    jaxlag_batch(system, nsteps, checks=jl.Checks(initial_state=False)),
+                ),
             ]
         ]
         # Large batches: fewer rounds (each call already lasts ~0.1 s).

@@ -110,7 +110,7 @@ def run():
                 ("jaxlag, projection=None", with_jaxlag(system, projection=None)),
                 (
                     "jaxlag, projection=None, no check",
-                    with_jaxlag(system, projection=None, check_initial_state=False),
+                    with_jaxlag(system, projection=None, checks=jl.Checks(initial_state=False)),
                 ),
                 ("jaxlag, default Projection()", with_jaxlag(system)),
                 ("jaxlag diagonal_mass, projection=None", with_jaxlag(diagonal, projection=None)),

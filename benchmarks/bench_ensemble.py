@@ -6,9 +6,10 @@ call integrates the whole batch. Throughput: ``B × steps / (time of one call)``
 
 Contenders (all in one process, same method, same steps, same initial states):
 
-* jaxlag ``simulate_batch(method="ensemble")`` with each backend present: ``"xla"`` (one
-  ``lax.scan`` over steps, state ``(B, n)``) everywhere, ``"pallas"`` (one fused kernel) on a GPU;
-* jaxlag ``simulate_batch(method="vmap")`` (``jax.vmap`` of ``diffrax.diffeqsolve``);
+* jaxlag ``simulate_batch(method=jl.Ensemble(backend=...))`` with each backend present: ``"xla"``
+  (one ``lax.scan`` over steps, state ``(B, n)``) everywhere, ``"pallas"`` (one fused kernel) on a
+  GPU;
+* jaxlag ``simulate_batch(method=jl.Vmap())`` (``jax.vmap`` of ``diffrax.diffeqsolve``);
 * (a) the explicit closed-form θ̈₁, θ̈₂, ``jax.vmap`` of ``diffrax.diffeqsolve``;
 * (b) the explicit formula in a bare ``lax.fori_loop`` over steps of the batched Tsit5 stages
   (written out here, no library code);
@@ -17,8 +18,8 @@ Contenders (all in one process, same method, same steps, same initial states):
   checked for correctness in Pallas's interpreter (B = 4), not timed.
 
 CPU: B = 1, 64, 1024, 8192 (fewer steps for larger B, every call ~0.1 s). GPU: B = 1, 1024,
-10⁵, 10⁶ at 100 steps (the issue's table). jaxlag runs with ``check_initial_state=False`` (the
-baselines check nothing either).
+10⁵, 10⁶ at 100 steps (the issue's table). jaxlag runs with ``checks=jl.Checks(initial_state=False)``
+(the baselines check nothing either).
 
 Run: ``python -m benchmarks.bench_ensemble`` from the repository root.
 """
@@ -161,7 +162,7 @@ def jaxlag_batch(system, nsteps, **kwargs):
             solver=diffrax.Tsit5(),
             stepsize_controller=diffrax.ConstantStepSize(),
             max_steps=nsteps + 1,
-            check_initial_state=False,
+            checks=jl.Checks(initial_state=False),
             **kwargs,
         ).q[:, -1]
 
@@ -227,21 +228,24 @@ def run():
         print(
             "lowers for CUDA (Triton), float64: hand kernel:",
             lowers_for_cuda(pallas_kernel(10), q0, qd0),
-            "| jaxlag backend='pallas':",
+            "| jaxlag Ensemble(backend='pallas'):",
             lowers_for_cuda(_jaxlag_kernel_only(system, 10), q0, qd0),
         )
     rows, errors = [], {}
     for batch, nsteps in SIZES:
         q0, qd0 = initial_states(batch)
         named = [
-            ("jaxlag ensemble, xla", jaxlag_batch(system, nsteps, method="ensemble", backend="xla")),
+            ("jaxlag ensemble, xla", jaxlag_batch(system, nsteps, method=jl.Ensemble(backend="xla"))),
         ]
         if GPU:
             named.append(
-                ("jaxlag ensemble, pallas", jaxlag_batch(system, nsteps, method="ensemble", backend="pallas"))
+                (
+                    "jaxlag ensemble, pallas",
+                    jaxlag_batch(system, nsteps, method=jl.Ensemble(backend="pallas")),
+                )
             )
         named += [
-            ("jaxlag simulate_batch (vmap)", jaxlag_batch(system, nsteps, method="vmap")),
+            ("jaxlag simulate_batch (vmap)", jaxlag_batch(system, nsteps, method=jl.Vmap())),
             ("(a) hand formula, diffrax + vmap", explicit_vmap(nsteps)),
             ("(b) hand formula, bare lax loop", bare_loop(nsteps)),
         ]

@@ -33,6 +33,7 @@ import jaxlag as jl
 G = 9.81
 T = 1.0
 NSTEPS = 200 if common.QUICK else 1000
+NO_INITIAL_CHECK = jl.Checks(initial_state=False)
 CHAIN_SIZES = (2, 5) if common.QUICK else (2, 5, 10, 20)
 TARGET_VS_B = 1.0
 TARGET_VS_A = 2.0
@@ -195,7 +196,7 @@ def run():
             ("(a) explicit formula", hand(double_pendulum_explicit)),
             ("(b) M, jnp.linalg.solve", hand(double_pendulum_solve)),
             ("jaxlag", with_jaxlag(system)),
-            ("jaxlag, check_initial_state=False", with_jaxlag(system, check_initial_state=False)),
+            ("jaxlag, Checks(initial_state=False)", with_jaxlag(system, checks=NO_INITIAL_CHECK)),
         ]
     ]
     common.time_alternating(cs)
@@ -217,8 +218,8 @@ def run():
             for name, fn in [
                 ("(b) M, jnp.linalg.solve", hand(make_chain_solve(n))),
                 ("jaxlag, L by cumsum", with_jaxlag(natural)),
-                ("jaxlag, L by cumsum, no check", with_jaxlag(natural, check_initial_state=False)),
-                ("jaxlag, L = ½q̇ᵀM(q)q̇ − V, no check", with_jaxlag(quadratic, check_initial_state=False)),
+                ("jaxlag, L by cumsum, no check", with_jaxlag(natural, checks=NO_INITIAL_CHECK)),
+                ("jaxlag, L = ½q̇ᵀM(q)q̇ − V, no check", with_jaxlag(quadratic, checks=NO_INITIAL_CHECK)),
             ]
         ]
         common.time_alternating(cs)

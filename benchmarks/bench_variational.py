@@ -99,7 +99,7 @@ def chaotic_double_pendulum():
 
 
 # ----------------------------------------------------------------------------- contenders
-def kkt(system, solver=None, projection="auto"):
+def kkt(system, solver=None, projection=jl.Projection()):
     solver = diffrax.Tsit5() if solver is None else solver
 
     def run(q0, qd0, dt=DT, nsteps=NSTEPS, ts=None):
@@ -116,7 +116,7 @@ def kkt(system, solver=None, projection="auto"):
             stepsize_controller=diffrax.ConstantStepSize(),
             max_steps=nsteps + 1,
             projection=projection,
-            check_initial_state=False,
+            checks=jl.Checks(initial_state=False),
         )
         return traj
 
@@ -132,7 +132,7 @@ def variational(system, **kwargs):
             dt=dt,
             num_steps=nsteps,
             save_every=nsteps if every is None else every,
-            check_initial_state=False,
+            checks=jl.Checks(initial_state=False),
             **kwargs,
         )
 

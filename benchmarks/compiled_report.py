@@ -45,7 +45,7 @@ def report(name, system, q, qd, constrained):
     n = q.shape[0]
     one = jax.jit(rhs).lower(q, qd).compile().as_text()
     kwargs = {"projection": None} if constrained else {}
-    simulation = bu.with_jaxlag(system, check_initial_state=False, **kwargs)
+    simulation = bu.with_jaxlag(system, checks=jl.Checks(initial_state=False), **kwargs)
     whole = jax.jit(simulation).lower(q, qd).compile().as_text()
     print(f"{name}")
     print(f"  one right-hand side : {summary(one, n)}")

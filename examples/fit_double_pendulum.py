@@ -101,10 +101,8 @@ def main():
         experiment,
         observe=second_bob,
         transforms=positive,
-        shooting_segments=segments,
-        segment_states=states,
+        shooting=jl.Shooting(segments=segments, states=states, periodic_coordinates=(0, 1)),
         estimate_initial_state=True,
-        periodic_coordinates=(0, 1),
         max_steps=200,
     )
     print(

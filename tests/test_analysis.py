@@ -297,7 +297,7 @@ def _simulate(system, q0, qd0, args):
         jnp.asarray(qd0),
         jnp.linspace(0.0, 1.0, 5),
         args=args,
-        check_initial_state=False,
+        checks=jl.Checks(initial_state=False),
         projection=None,
     )
 

@@ -5,6 +5,7 @@ import subprocess
 import sys
 import textwrap
 
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -146,11 +147,12 @@ _SHARDED_SCRIPT = textwrap.dedent(
     q0 = jnp.stack([jnp.full_like(theta0, R), theta0], axis=1)
     args = {"g": 9.81, "R": R}
 
-    plain = simulate_batch(system, q0, jnp.zeros(2), ts, args=args, max_segments=3)
-    sharded = simulate_batch(system, q0, jnp.zeros(2), ts, args=args, max_segments=3,
+    events = jl.Events(max_segments=3)
+    plain = simulate_batch(system, q0, jnp.zeros(2), ts, args=args, events=events)
+    sharded = simulate_batch(system, q0, jnp.zeros(2), ts, args=args, events=events,
                              sharding="auto")
     # 6 members are padded to 8 (a multiple of the 4 devices): the same program as above.
-    padded = simulate_batch(system, q0[:6], jnp.zeros(2), ts, args=args, max_segments=3,
+    padded = simulate_batch(system, q0[:6], jnp.zeros(2), ts, args=args, events=events,
                             sharding="auto")
 
     assert sharded.q.shape == plain.q.shape == (8, 9, 2) and padded.q.shape == (6, 9, 2)
@@ -279,6 +281,98 @@ def test_batch_checks_on_the_host_name_the_member():
         jax.block_until_ready(
             jax.jit(lambda q: jl.simulate_batch(system, q, jnp.zeros(2), ts, args=args).q)(q0s)
         )
-    # check_initial_state=False is respected: no diagnostics, the member just runs.
-    traj = jl.simulate_batch(system, q0s, jnp.zeros(2), ts, args=args, check_initial_state=False, throw=False)
+    # Checks(initial_state=False) is respected: no diagnostics, the member just runs.
+    traj = jl.simulate_batch(
+        system, q0s, jnp.zeros(2), ts, args=args, checks=jl.Checks(initial_state=False), throw=False
+    )
     assert traj.q.shape == (4, 6, 2)
+
+
+def test_batch_method_objects():
+    """The method is an object: jl.Vmap(), jl.Ensemble(backend=...) or None (chosen: vmap on
+    CPU); strings and unknown backends are refused; simulate's options are keywords."""
+    q0s = jnp.array([[0.1], [0.7], [1.5]])
+    args = {"g": 9.81, "l": 1.3}
+    options = dict(args=args, stepsize_controller=diffrax.ConstantStepSize(), dt0=0.01)
+    assert issubclass(jl.Vmap, jl.AbstractBatchMethod) and issubclass(jl.Ensemble, jl.AbstractBatchMethod)
+    assert jl.Ensemble().backend == "auto"
+    vmapped = simulate_batch(PENDULUM, q0s, jnp.zeros(1), TS, method=jl.Vmap(), **options)
+    if jax.default_backend() == "cpu":  # method=None is vmap on CPU: the same program
+        chosen = simulate_batch(PENDULUM, q0s, jnp.zeros(1), TS, **options)
+        np.testing.assert_array_equal(chosen.q, vmapped.q)
+    for backend in ("auto", "xla"):
+        ensemble = simulate_batch(
+            PENDULUM, q0s, jnp.zeros(1), TS, method=jl.Ensemble(backend=backend), **options
+        )
+        assert ensemble.failure is None  # the ensemble loop's Trajectory (vmap's has a record)
+        np.testing.assert_allclose(ensemble.q, vmapped.q, rtol=0, atol=1e-12)
+    with pytest.raises(TypeError, match=r"method must be jl\.Vmap\(\), jl\.Ensemble\(\.\.\.\) or None"):
+        simulate_batch(PENDULUM, q0s, jnp.zeros(1), TS, args=args, method="vmap")
+    with pytest.raises(TypeError, match=r"method must be"):
+        simulate_batch(PENDULUM, q0s, jnp.zeros(1), TS, args=args, method=jl.Vmap)
+    with pytest.raises(ValueError, match=r"Ensemble backend must be one of 'auto', 'xla', 'pallas'"):
+        jl.Ensemble(backend="cuda")
+    with pytest.raises(TypeError, match="unexpected keyword"):
+        simulate_batch(PENDULUM, q0s, jnp.zeros(1), TS, args=args, backend="xla")
+    with pytest.raises(TypeError, match="unexpected keyword"):
+        simulate_batch(PENDULUM, q0s, jnp.zeros(1), TS, args=args, max_segments=3)
+    with pytest.raises(TypeError, match=r"projection must be jl\.Projection\(\) or None"):
+        simulate_batch(PENDULUM, q0s, jnp.zeros(1), TS, args=args, projection="auto")
+    with pytest.raises(TypeError, match=r"events must be a jl\.Events"):
+        simulate_batch(PENDULUM, q0s, jnp.zeros(1), TS, args=args, events="crossing")
+    with pytest.raises(TypeError, match=r"checks must be a jl\.Checks"):
+        simulate_batch(PENDULUM, q0s, jnp.zeros(1), TS, args=args, checks=None)
+
+
+def test_batch_takes_simulate_option_objects():
+    """Events and Checks reach every member, by either method where it applies."""
+    q0s = jnp.array([[0.3], [0.6]])
+    args = {"g": 9.81, "l": 1.0}
+    crossing = jl.Event(lambda q, qd: q[0], terminal=False)
+    batch = simulate_batch(
+        PENDULUM, q0s, jnp.zeros(1), TS, args=args, events=jl.Events(crossing, max_segments=3)
+    )
+    assert batch.events.time.shape == (2, 3)
+    for i in range(2):
+        single = jl.simulate(
+            PENDULUM, q0s[i], jnp.zeros(1), TS, args=args, events=jl.Events(crossing, max_segments=3)
+        )
+        np.testing.assert_allclose(batch.events.time[i], single.events.time, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(batch.q[i], single.q, rtol=0, atol=1e-12)
+    # A plain list of events is accepted as by simulate; the ensemble loop refuses events.
+    listed = simulate_batch(PENDULUM, q0s, jnp.zeros(1), TS, args=args, events=[crossing])
+    assert listed.events.time.shape == (2, 8)
+    with pytest.raises(ValueError, match=r"Event.*method=jl\.Vmap\(\)"):
+        simulate_batch(PENDULUM, q0s, jnp.zeros(1), TS, args=args, events=[crossing], method=jl.Ensemble())
+    # Checks: a member off the circle is refused by both methods unless the check is skipped.
+    system = jl.System(
+        lambda q, qd, args: 0.5 * (qd @ qd) - args["g"] * q[1],
+        holonomic=lambda q, args: jnp.array([q @ q - 1.0]),
+    )
+    q0s = jnp.array([[0.6, -0.8], [0.6, -0.81]])
+    ts = jnp.linspace(0.0, 0.5, 3)
+    for method in (jl.Vmap(), jl.Ensemble()):
+        with pytest.raises(Exception, match="off the constraint manifold"):
+            jax.block_until_ready(
+                simulate_batch(system, q0s, jnp.zeros(2), ts, args={"g": 9.81}, method=method).q
+            )
+        out = simulate_batch(
+            system,
+            q0s,
+            jnp.zeros(2),
+            ts,
+            args={"g": 9.81},
+            method=method,
+            checks=jl.Checks(initial_state=False),
+        )
+        assert out.q.shape == (2, 3, 2)
+        loose = simulate_batch(
+            system,
+            q0s,
+            jnp.zeros(2),
+            ts,
+            args={"g": 9.81},
+            method=method,
+            checks=jl.Checks(constraint_tolerance=0.1),
+        )
+        np.testing.assert_allclose(loose.q, out.q, rtol=0, atol=1e-12)

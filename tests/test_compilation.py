@@ -14,6 +14,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 import jaxlag as jl
@@ -131,6 +132,40 @@ def test_fit_twice_compiles_once_and_stops_at_the_noise_floor():
     assert count == [0]
     for result, truth in ((first, {"g": 9.81, "l": 0.8}), (second, {"g": 9.7, "l": 0.9})):
         assert result.converged and result.num_steps <= 12
+        for key, value in truth.items():  # within 5 standard errors of the truth
+            assert abs(float(result.params[key]) - value) < 5 * float(result.standard_errors[key])
+
+
+def test_fit_with_equal_option_objects_compiles_once():
+    """The option objects of a fit (optimizer, shooting, simulation options) are part of the
+    cache key by value: a second fit with new, equal objects (new data, new starting values)
+    compiles nothing."""
+    bob = lambda q, qd, args: args["l"] * jnp.array([jnp.sin(q[0]), -jnp.cos(q[0])])  # noqa: E731
+    ts = jnp.linspace(0.0, 2.0, 41)
+
+    def fit(truth, guess, seed):
+        traj = jl.simulate(PENDULUM, jnp.array([0.5]), jnp.zeros(1), ts, args=truth)
+        data = jax.vmap(lambda q, qd: bob(q, qd, truth))(traj.q, traj.qd)
+        data = data + 1e-3 * np.random.default_rng(seed).standard_normal(data.shape)
+        return jl.fit(
+            PENDULUM,
+            guess,
+            jl.Experiment(ts, data, jnp.array([0.5]), jnp.zeros(1)),
+            observe=bob,
+            transforms={"g": jl.Positive(), "l": jl.Positive()},
+            optimizer=optx.GaussNewton(rtol=1e-8, atol=1e-8),
+            shooting=jl.Shooting(segments=2, continuity_weight=5.0),
+            solver=diffrax.Dopri5(),
+            stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-9),
+            max_solver_steps=4096,
+        )
+
+    first = fit({"g": 9.81, "l": 0.8}, {"g": 11.0, "l": 0.6}, 0)
+    with compilations() as count:
+        second = fit({"g": 9.7, "l": 0.9}, {"g": 8.0, "l": 1.1}, 1)
+    assert count == [0]
+    for result, truth in ((first, {"g": 9.81, "l": 0.8}), (second, {"g": 9.7, "l": 0.9})):
+        assert result.converged
         for key, value in truth.items():  # within 5 standard errors of the truth
             assert abs(float(result.params[key]) - value) < 5 * float(result.standard_errors[key])
 

@@ -121,7 +121,7 @@ def test_dependence_on_state_parameters_and_helpers():
 
 
 # --------------------------------------------------------------- same results, every path
-@pytest.mark.parametrize("projection", [None, "auto"])
+@pytest.mark.parametrize("projection", [None, jl.Projection()])
 def test_constant_path_matches_general_path(projection):
     q0, qd0 = chain_state(4)
     fast = jl.simulate(jl.System(particles, chain), q0, qd0, TS, projection=projection)
@@ -202,7 +202,7 @@ def test_unilateral_constraint_uses_the_constant_path():
 def test_singular_constant_mass_is_reported_without_the_initial_check():
     degenerate = jl.System(lambda q, qd: 0.5 * qd[0] ** 2 - 0.5 * jnp.sum(q**2))
     with pytest.raises(ValueError, match="singular or not positive definite"):
-        jl.simulate(degenerate, jnp.ones(2), jnp.zeros(2), TS, check_initial_state=False)
+        jl.simulate(degenerate, jnp.ones(2), jnp.zeros(2), TS, checks=jl.Checks(initial_state=False))
 
 
 def test_constant_step_solver_and_forward_mode():

@@ -80,7 +80,7 @@ def test_stitched_trajectory_is_continuous_and_conserves_energy():
         traj.qd[i - 1],
         jnp.array([TS[i - 1], t_e]),
         args=ARGS,
-        max_segments=1,
+        events=jl.Events(max_segments=1),
         throw=False,
     )
     np.testing.assert_allclose(dense.q[-1], traj.events.q[0], atol=1e-9)
@@ -202,7 +202,7 @@ def test_too_few_segments_is_an_error():
             jnp.array([0.0, math.sqrt(3.5 * 9.81)]),
             jnp.linspace(0.0, 2.0, 21),
             args={"g": 9.81, "l": 1.0},
-            max_segments=1,
+            events=jl.Events(max_segments=1),
         )
 
 

@@ -1,10 +1,14 @@
 """System identification: parameters recovered from simulated observations."""
 
+import inspect
+
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import optimistix as optx
 import pytest
 
 import jaxlag as jl
@@ -93,7 +97,7 @@ def test_initial_state_is_estimated_too():
 
 def test_multiple_shooting_agrees_with_single_shooting():
     experiment = jl.Experiment(TS, observe_bob(TRUE), Q0, QD0)
-    result = jl.fit(PENDULUM, START, experiment, observe=bob, shooting_segments=4)
+    result = jl.fit(PENDULUM, START, experiment, observe=bob, shooting=jl.Shooting(segments=4))
     for name in TRUE:
         assert abs(result.params[name] / TRUE[name] - 1) < 1e-6
 
@@ -145,7 +149,7 @@ def test_damping_coefficient_of_an_oscillator():
 def test_optax_path_decreases_the_loss():
     experiment = jl.Experiment(TS, observe_bob(TRUE), Q0, QD0)
     result = jl.fit(
-        PENDULUM, START, experiment, observe=bob, method=optax.adam(0.05), max_steps=60, progress=True
+        PENDULUM, START, experiment, observe=bob, optimizer=optax.adam(0.05), max_steps=60, progress=True
     )
     assert len(result.loss_history) == 61
     assert result.loss_history[-1] < 0.05 * result.loss_history[0]
@@ -164,7 +168,7 @@ def test_loss_gradient_matches_central_differences():
             {"g": x[0], "l": x[1]},
             experiment,
             observe=bob,
-            simulate_kwargs={"adjoint": diffrax.ForwardMode()},
+            adjoint=diffrax.ForwardMode(),
         )
     )(jnp.array(list(START.values())))
     h = 1e-5
@@ -202,8 +206,14 @@ def test_bad_input():
             [jl.Experiment(TS, observed, Q0, QD0), jl.Experiment(TS[:10], observed[:10], Q0, QD0)],
             observe=bob,
         )
-    with pytest.raises(ValueError, match="shooting_segments"):
-        jl.fit(PENDULUM, START, jl.Experiment(TS, observed, Q0, QD0), observe=bob, shooting_segments=7)
+    with pytest.raises(ValueError, match=r"Shooting\(segments=7\).*must divide"):
+        jl.fit(
+            PENDULUM,
+            START,
+            jl.Experiment(TS, observed, Q0, QD0),
+            observe=bob,
+            shooting=jl.Shooting(segments=7),
+        )
     with pytest.raises(ValueError, match="transforms"):
         jl.fit(
             PENDULUM,
@@ -225,7 +235,7 @@ def test_failures_during_a_fit_are_raised_from_the_host():
             START,
             [jl.Experiment(TS[:5], observed[:5], Q0, QD0), jl.Experiment(TS[:5] * 20, observed[:5], Q0, QD0)],
             observe=bob,
-            simulate_kwargs={"max_steps": 64},
+            max_solver_steps=64,
         )
     # A bead that should sit at distance l from the pivot, but the constraint |x| = −l has no
     # solution for l > 0: the projection of the initial state fails.
@@ -256,3 +266,109 @@ def test_one_experiment_path_equals_the_batched_one():
     np.testing.assert_allclose(two, 2 * one, rtol=1e-13)
     for name in START:
         np.testing.assert_allclose(grad_two[name], 2 * grad_one[name], rtol=1e-11)
+
+
+def test_default_optimizer_is_the_old_default():
+    """``optimizer`` defaults to optimistix' Levenberg–Marquardt at rtol = atol = 1e-10 (the old
+    ``method="levenberg_marquardt"``, ``rtol=1e-10``, ``atol=1e-10``): the same steps as the
+    explicit solver object, and the optimum the old API found on the same data."""
+    default = inspect.signature(jl.fit).parameters["optimizer"].default
+    assert eqx.tree_equal(default, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10))
+    clean = observe_bob(TRUE)
+    noisy = clean + 0.01 * np.random.default_rng(0).standard_normal(clean.shape)
+    experiment = jl.Experiment(TS, noisy, Q0, QD0)
+    positive = {"g": jl.Positive(), "l": jl.Positive()}
+    implicit = jl.fit(PENDULUM, START, experiment, observe=bob, transforms=positive)
+    explicit = jl.fit(
+        PENDULUM,
+        START,
+        experiment,
+        observe=bob,
+        transforms=positive,
+        optimizer=optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10),
+    )
+    assert implicit.converged and implicit.num_steps == explicit.num_steps
+    np.testing.assert_array_equal(implicit.loss_history, explicit.loss_history)
+    # jl.fit(..., method="levenberg_marquardt") before the option objects, same data and start.
+    old = {"g": 9.798405886708514, "l": 0.7986614019022151}
+    for name in TRUE:
+        assert implicit.params[name] == explicit.params[name]
+        assert abs(implicit.params[name] / old[name] - 1) < 1e-9
+
+
+@pytest.mark.parametrize("solver", [optx.GaussNewton, optx.Dogleg, optx.IndirectLevenbergMarquardt])
+def test_gauss_newton_type_solver_objects(solver):
+    """Every optimistix solver of the Gauss–Newton family steps on the linearized residuals."""
+    experiment = jl.Experiment(TS, observe_bob(TRUE), Q0, QD0)
+    result = jl.fit(PENDULUM, START, experiment, observe=bob, optimizer=solver(rtol=1e-10, atol=1e-10))
+    assert result.converged
+    for name in TRUE:
+        assert abs(result.params[name] / TRUE[name] - 1) < 1e-6
+
+
+def test_three_shooting_segments_as_before_and_periodic_segment_states():
+    """``shooting=jl.Shooting(segments=3)`` finds the optimum the old ``shooting_segments=3``
+    found; segment states given in another branch of a periodic coordinate
+    (``periodic_coordinates``) lead to the same fit."""
+    clean = observe_bob(TRUE)
+    noisy = clean + 0.01 * np.random.default_rng(0).standard_normal(clean.shape)
+    experiment = jl.Experiment(TS, noisy, Q0, QD0)
+    positive = {"g": jl.Positive(), "l": jl.Positive()}
+    result = jl.fit(
+        PENDULUM, START, experiment, observe=bob, transforms=positive, shooting=jl.Shooting(segments=3)
+    )
+    assert result.converged
+    q, qd = (np.asarray(s) for s in result.segment_states)
+    assert q.shape == qd.shape == (1, 3, 1)
+    # jl.fit(..., shooting_segments=3) before the option objects, same data and start.
+    old = {"g": 9.798787486219824, "l": 0.7986615031047841}
+    for name in TRUE:
+        assert abs(result.params[name] / old[name] - 1) < 1e-9
+    q = q.copy()
+    q[:, 1:] += 2 * np.pi
+    shifted = jl.fit(
+        PENDULUM,
+        START,
+        experiment,
+        observe=bob,
+        transforms=positive,
+        shooting=jl.Shooting(segments=3, states=(q, qd), periodic_coordinates=(0,)),
+    )
+    assert shifted.converged
+    np.testing.assert_allclose(shifted.segment_states[0][:, 1:], q[:, 1:], atol=1e-6)
+    for name in TRUE:
+        assert abs(shifted.params[name] / result.params[name] - 1) < 1e-9
+
+
+def test_bad_option_objects():
+    experiment = jl.Experiment(TS, observe_bob(TRUE), Q0, QD0)
+    with pytest.raises(TypeError, match=r"not the string 'gauss_newton'.*optx\.GaussNewton\(rtol=1e-10"):
+        jl.fit(PENDULUM, START, experiment, observe=bob, optimizer="gauss_newton")
+    with pytest.raises(TypeError, match="Gauss–Newton-type solver.*got BestSoFarLeastSquares"):
+        jl.fit(
+            PENDULUM,
+            START,
+            experiment,
+            observe=bob,
+            optimizer=optx.BestSoFarLeastSquares(optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)),
+        )
+    with pytest.raises(TypeError, match="optax.GradientTransformation.*got BFGS"):
+        jl.fit(PENDULUM, START, experiment, observe=bob, optimizer=optx.BFGS(rtol=1e-8, atol=1e-8))
+    with pytest.raises(TypeError, match="method"):
+        jl.fit(PENDULUM, START, experiment, observe=bob, method="gauss_newton")
+    with pytest.raises(ValueError, match=r"Shooting\(segments=0\).*at least 1"):
+        jl.Shooting(segments=0)
+    with pytest.raises(TypeError, match=r"Shooting\(segments=\.\.\.\) must be an int"):
+        jl.Shooting(segments=2.0)
+    with pytest.raises(ValueError, match=r"continuity_weight=0\.0.*must be positive"):
+        jl.Shooting(continuity_weight=0.0)
+    with pytest.raises(TypeError, match=r"shooting must be a jl\.Shooting"):
+        jl.fit(PENDULUM, START, experiment, observe=bob, shooting=3)
+    with pytest.raises(ValueError, match=r"Shooting\(states=\(q, qd\)\) must have shape \(1, 3, 1\)"):
+        jl.fit(
+            PENDULUM,
+            START,
+            experiment,
+            observe=bob,
+            shooting=jl.Shooting(segments=3, states=(np.zeros((1, 2, 1)), np.zeros((1, 2, 1)))),
+        )

@@ -69,7 +69,7 @@ _WORKER = textwrap.dedent(
     theta0 = jnp.linspace(0.2, 0.55, 8)
     q0 = jnp.stack([jnp.full_like(theta0, 2.0), theta0], axis=1)
     g = jnp.linspace(9.0, 10.0, 8)
-    options = dict(max_segments=3, sharding="auto", args_axes={{"g": 0, "R": None}})
+    options = dict(events=jl.Events(max_segments=3), sharding="auto", args_axes={{"g": 0, "R": None}})
 
     def gather(traj):
         return {{name: np.asarray(multihost_utils.process_allgather(x, tiled=True)) for name, x in
@@ -166,7 +166,13 @@ def test_two_processes_with_cpu_collectives_equal_the_single_process_batch(tmp_p
     q0 = jnp.stack([jnp.full_like(theta0, 2.0), theta0], axis=1)
     g = jnp.linspace(9.0, 10.0, 8)
     single = jl.simulate_batch(
-        system, q0, jnp.zeros(2), ts, args={"g": g, "R": 2.0}, args_axes={"g": 0, "R": None}, max_segments=3
+        system,
+        q0,
+        jnp.zeros(2),
+        ts,
+        args={"g": g, "R": 2.0},
+        args_axes={"g": 0, "R": None},
+        events=jl.Events(max_segments=3),
     )
     expected = {"q": single.q, "qd": single.qd, "time": single.events.time, "kind": single.events.kind}
     # Each member lets go of the sphere where cos θ = (2/3) cos θ0, whatever g.

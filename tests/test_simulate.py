@@ -3,8 +3,10 @@
 import math
 
 import diffrax
+import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 import jaxlag as jl
@@ -184,4 +186,176 @@ def test_diffrax_options_pass_through():
             stepsize_controller=diffrax.ConstantStepSize(),
             dt0=0.01,
             max_steps=10,
+        )
+
+
+# ------------------------------------------------------------------ option objects (Checks, Events)
+def circle(q, qd, args):
+    return 0.5 * (qd @ qd) - args["g"] * q[1]
+
+
+def on_circle(q, args):
+    return jnp.array([q @ q - 1.0])
+
+
+CIRCLE = jl.System(circle, holonomic=on_circle)
+CIRCLE_ARGS = {"g": 9.81}
+CIRCLE_Q0 = jnp.array([0.6, -0.8])
+
+
+def test_default_option_objects_are_the_old_defaults():
+    ts = jnp.linspace(0.0, 1.0, 6)
+    # Constrained: the default projects (jl.Projection()), checks everything, has no events.
+    default = jl.simulate(CIRCLE, CIRCLE_Q0, jnp.zeros(2), ts, args=CIRCLE_ARGS)
+    explicit = jl.simulate(
+        CIRCLE,
+        CIRCLE_Q0,
+        jnp.zeros(2),
+        ts,
+        args=CIRCLE_ARGS,
+        projection=jl.Projection(),
+        checks=jl.Checks(initial_state=True, times=True, constraint_tolerance=None),
+        events=jl.Events(),
+    )
+    np.testing.assert_array_equal(default.q, explicit.q)
+    np.testing.assert_array_equal(default.qd, explicit.qd)
+    assert default.events is None and default.active is None
+    unprojected = jl.simulate(CIRCLE, CIRCLE_Q0, jnp.zeros(2), ts, args=CIRCLE_ARGS, projection=None)
+    assert not np.array_equal(default.q, unprojected.q)
+    np.testing.assert_allclose(default.q, unprojected.q, atol=1e-8)
+    # Unconstrained: the projection is ignored, as "auto" did.
+    args = {"m": 1.0, "k": 1.0}
+    plain = jl.simulate(jl.System(harmonic), [1.0], [0.0], ts, args=args, projection=None)
+    projected = jl.simulate(jl.System(harmonic), [1.0], [0.0], ts, args=args, projection=jl.Projection())
+    np.testing.assert_array_equal(plain.q, projected.q)
+    # The defaults of the Modules themselves.
+    assert jl.Checks() == jl.Checks(initial_state=True, times=True, constraint_tolerance=None)
+    events = jl.Events()
+    assert events.conditions == () and events.max_segments == 8
+    assert isinstance(events.root_finder, optx.Newton)
+    assert events.root_finder.rtol == events.root_finder.atol == 1e-13
+
+
+def test_string_projection_is_a_type_error():
+    for projection in ("auto", "none"):
+        with pytest.raises(TypeError, match=r"projection must be jl\.Projection\(\) or None"):
+            jl.simulate(
+                CIRCLE,
+                CIRCLE_Q0,
+                jnp.zeros(2),
+                jnp.linspace(0.0, 1.0, 3),
+                args=CIRCLE_ARGS,
+                projection=projection,
+            )
+
+
+def test_wrong_events_or_checks_are_type_errors():
+    ts = jnp.linspace(0.0, 1.0, 3)
+    event = jl.Event(lambda q, qd: q[0])
+    run = lambda **kw: jl.simulate(jl.System(pendulum), [0.3], [0.0], ts, args={"g": 9.81, "l": 1.0}, **kw)
+    with pytest.raises(
+        TypeError, match=r"events must be a jl\.Events, a jl\.Event or a sequence of jl\.Event"
+    ):
+        run(events="crossing")
+    with pytest.raises(TypeError, match=r"events must be a jl\.Events.*holding int"):
+        run(events=[event, 3])
+    with pytest.raises(TypeError, match=r"events must be a jl\.Events"):
+        run(events=lambda q, qd: q[0])
+    with pytest.raises(TypeError, match=r"checks must be a jl\.Checks"):
+        run(checks=False)
+    with pytest.raises(TypeError, match=r"separate arguments: jl\.Events\(\*conditions\)"):
+        jl.Events([event])
+    with pytest.raises(TypeError, match=r"jl\.Events takes jl\.Event conditions"):
+        jl.Events(lambda q, qd: q[0])
+    with pytest.raises(TypeError, match="unexpected keyword"):
+        jl.Events(conditions=(event,))
+    with pytest.raises(ValueError, match="max_segments must be a positive integer"):
+        jl.Events(event, max_segments=0)
+    with pytest.raises(TypeError, match="root_finder must be an optimistix root finder"):
+        jl.Events(event, root_finder=1e-13)
+    with pytest.raises(ValueError, match="constraint_tolerance must be positive"):
+        jl.Checks(constraint_tolerance=0.0)
+    # The removed keywords are not silently accepted.
+    for removed in (
+        {"max_segments": 3},
+        {"event_root_finder": optx.Newton(rtol=1e-8, atol=1e-8)},
+        {"check_initial_state": False},
+        {"check_times": False},
+        {"constraint_tolerance": 1e-6},
+    ):
+        with pytest.raises(TypeError, match="unexpected keyword"):
+            run(**removed)
+
+
+def test_events_object_plain_event_and_list_agree():
+    ts = jnp.linspace(0.0, 1.0, 6)
+    crossing = jl.Event(lambda q, qd: q[0], terminal=False)
+    run = lambda events: jl.simulate(
+        jl.System(pendulum), [0.3], [0.0], ts, args={"g": 9.81, "l": 1.0}, events=events
+    )
+    single, listed, wrapped = run(crossing), run([crossing]), run(jl.Events(crossing))
+    for other in (listed, wrapped):
+        np.testing.assert_array_equal(single.q, other.q)
+        np.testing.assert_array_equal(single.events.time, other.events.time)
+    assert single.events.time.shape == (8,)  # the default max_segments
+    # The pendulum crosses q = 0 at a quarter period, √(l/g) K(sin(θ0/2)); then the end time.
+    assert single.events.kinds()[:3] == ["user", "end", "none"]
+    quarter = math.sqrt(1.0 / 9.81) * complete_elliptic_k(math.sin(0.15))
+    np.testing.assert_allclose(single.events.time[0], quarter, rtol=1e-7)
+    # max_segments and root_finder are taken from the Events.
+    short = run(jl.Events(crossing, max_segments=2, root_finder=optx.Newton(rtol=1e-13, atol=1e-13)))
+    assert short.events.time.shape == (2,)
+    np.testing.assert_array_equal(short.events.time, single.events.time[:2])
+    np.testing.assert_array_equal(short.q, single.q)
+    with pytest.raises(jl.SimulationError, match=r"max_segments = 1 .*jl\.Events\(\.\.\., max_segments="):
+        run(jl.Events(crossing, max_segments=1))
+
+
+def test_checks_object_controls_the_initial_state_check():
+    ts = jnp.linspace(0.0, 0.5, 3)
+    off = jnp.array([0.6, -0.81])  # |q|² − 1 = 0.0161: off the circle
+    with pytest.raises(ValueError, match="off the constraint manifold"):
+        jl.simulate(CIRCLE, off, jnp.zeros(2), ts, args=CIRCLE_ARGS)
+    # Skipped: the run starts from the given state (and the projection pulls it onto the circle).
+    traj = jl.simulate(CIRCLE, off, jnp.zeros(2), ts, args=CIRCLE_ARGS, checks=jl.Checks(initial_state=False))
+    np.testing.assert_allclose(jnp.sum(traj.q[1:] ** 2, axis=-1), 1.0, atol=1e-8)
+    # A looser tolerance accepts the state; a tighter one refuses a nearly consistent one.
+    jl.simulate(CIRCLE, off, jnp.zeros(2), ts, args=CIRCLE_ARGS, checks=jl.Checks(constraint_tolerance=0.1))
+    near = CIRCLE_Q0 * (1.0 + 1e-9)
+    jl.simulate(CIRCLE, near, jnp.zeros(2), ts, args=CIRCLE_ARGS)
+    with pytest.raises(ValueError, match="beyond the tolerance 1e-12"):
+        jl.simulate(
+            CIRCLE, near, jnp.zeros(2), ts, args=CIRCLE_ARGS, checks=jl.Checks(constraint_tolerance=1e-12)
+        )
+    # Under jit (compiled check) too.
+    with pytest.raises(Exception, match="off the constraint manifold"):
+        jax.block_until_ready(
+            jax.jit(lambda q: jl.simulate(CIRCLE, q, jnp.zeros(2), ts, args=CIRCLE_ARGS).q)(off)
+        )
+    skipped = jax.jit(
+        lambda q: (
+            jl.simulate(
+                CIRCLE, q, jnp.zeros(2), ts, args=CIRCLE_ARGS, checks=jl.Checks(initial_state=False)
+            ).q
+        )
+    )(off)
+    np.testing.assert_allclose(skipped, traj.q, atol=1e-12)
+
+
+def test_checks_times_false_compiles_no_check_of_traced_save_times():
+    args = {"m": 1.0, "k": 1.0}
+
+    def callbacks(times):
+        checks = jl.Checks(initial_state=False, times=times)
+        jaxpr = jax.make_jaxpr(
+            lambda ts: jl.simulate(jl.System(harmonic), [1.0], [0.0], ts, args=args, checks=checks).q
+        )(jnp.linspace(0.0, 1.0, 5))
+        return str(jaxpr).count("callback")
+
+    assert callbacks(True) > callbacks(False)
+    with pytest.raises(Exception, match="strictly increasing"):
+        jax.block_until_ready(
+            jax.jit(lambda ts: jl.simulate(jl.System(harmonic), [1.0], [0.0], ts, args=args).q)(
+                jnp.array([0.0, 0.5, 0.4])
+            )
         )

@@ -39,7 +39,7 @@ def simulate(system, q0, qd0, ts, args=None):
         jnp.asarray(qd0, float),
         jnp.asarray(ts, float),
         args=args,
-        check_initial_state=False,
+        checks=jl.Checks(initial_state=False),
         projection=None,
     )
 

@@ -20,19 +20,31 @@ from . import (
 from ._adjoint import ForwardSensitivities as ForwardSensitivities
 from ._batch.batch import batch_sharding as batch_sharding, simulate_batch as simulate_batch
 from ._batch.ensemble import RK4 as RK4
+from ._batch.methods import (
+    AbstractBatchMethod as AbstractBatchMethod,
+    Ensemble as Ensemble,
+    Vmap as Vmap,
+)
 from ._cache import (
     UnsafeCacheDirectory as UnsafeCacheDirectory,
     default_cache_directory as default_cache_directory,
     enable_compilation_cache as enable_compilation_cache,
 )
+from ._checks import Checks as Checks
 from ._compile import compiler_options as compiler_options
 from ._errors import SimulationError as SimulationError
-from ._events import Event as Event, EventLog as EventLog, multiplier_limit as multiplier_limit
+from ._events import (
+    Event as Event,
+    EventLog as EventLog,
+    Events as Events,
+    multiplier_limit as multiplier_limit,
+)
 from ._fit import (
     Bounded as Bounded,
     Experiment as Experiment,
     FitResult as FitResult,
     Positive as Positive,
+    Shooting as Shooting,
     fit as fit,
     least_squares_loss as least_squares_loss,
 )

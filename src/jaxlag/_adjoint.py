@@ -32,11 +32,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, cast
 
 import diffrax
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
@@ -256,7 +257,7 @@ def call_with_forward_sensitivities(
             tangents, axes = _unit_tangents(shapes, sizes, k)
 
             def pushed(p, t):
-                return run.push_along(p, static, t, tuple(axes), structure)
+                return cast(Any, run).push_along(p, static, t, tuple(axes), structure)  # see _pushes_itself
 
             shapes_of = getattr(run, "push_along_shapes", None)
             if shapes_of is None:

@@ -14,6 +14,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 
 from . import _compile as compilation
 from ._errors import Report, batch_prefix, failed_members, member, raise_from_program
@@ -27,6 +28,45 @@ from ._tolerances import (
     default_constraint_tolerance,
     rcond,
 )
+
+
+class Checks(eqx.Module):
+    """The input checks of :func:`~jaxlag.simulate` (``checks=jl.Checks(...)``).
+
+    - ``initial_state``: check ``(q0, qd0)`` before integrating and raise ``ValueError`` if the
+      state is non-finite, the mass matrix ``M = ∂²L/∂q̇²`` is singular or not positive
+      definite, the constraints are redundant or not finite, a unilateral constraint is
+      violated or would have to pull, a floating-point parameter in ``args`` is not finite, or
+      the state is off the constraint manifold (``|f|``, ``|ḟ|``, ``|g|``) by more than
+      ``constraint_tolerance``. Concrete inputs are checked eagerly on the host (the message
+      names the numbers and the constraints); traced ones compile the check into the program.
+      See :func:`~jaxlag.consistent_initial_state` to project an approximate state.
+    - ``times``: traced save times ``ts`` (inside ``jit``/``vmap``) are checked to increase
+      inside the compiled program. Pass ``False`` when you have checked them yourself (as
+      ``jl.fit`` does once on the host): the program then has no host callback for them, so
+      JAX's persistent cache can store it. Concrete ``ts`` are always checked, on the host.
+    - ``constraint_tolerance``: the largest constraint residual accepted by the initial-state
+      check; ``None`` (default) is the dtype's default, 1e-8 in float64 and ``√ε`` (3.5e-4) in
+      float32.
+
+    ``jl.Checks(initial_state=False)`` skips the initial-state check (e.g. when the state comes
+    from :func:`~jaxlag.consistent_initial_state` in the same program).
+    """
+
+    initial_state: bool = eqx.field(static=True, default=True)
+    times: bool = eqx.field(static=True, default=True)
+    constraint_tolerance: float | None = None
+
+    def __check_init__(self):
+        tolerance = self.constraint_tolerance
+        if tolerance is not None and is_concrete(tolerance) and not float(tolerance) > 0:
+            raise ValueError(f"Checks.constraint_tolerance must be positive or None; got {tolerance!r}.")
+
+    def tolerance(self, dtype: DTypeLike) -> float:
+        """``constraint_tolerance``, or the default of ``dtype`` when it is ``None``."""
+        if self.constraint_tolerance is None:
+            return default_constraint_tolerance(dtype)
+        return self.constraint_tolerance
 
 
 def initial_activity(system, q, t, args, tolerance):
@@ -180,8 +220,8 @@ def _tolerance_text(tolerance: float, dtype) -> str:
     if np.dtype(dtype) != np.float64:
         text += (
             f" (the state is {np.dtype(dtype).name}: jax_enable_x64 is off; enable it with "
-            "jax.config.update('jax_enable_x64', True), or pass a constraint_tolerance "
-            "suited to single precision)"
+            "jax.config.update('jax_enable_x64', True), or pass "
+            "checks=jl.Checks(constraint_tolerance=...) suited to single precision)"
         )
     return text
 
@@ -269,7 +309,8 @@ def _batched_initial_message(static: _Static, payload) -> str | None:
     if not members:
         return None
     index = members[0]
-    text = _initial_message(*member((d, fail), index), static)
+    d_member, fail_member = member((d, fail), index)
+    text = _initial_message(d_member, fail_member, static)
     return batch_prefix(index, flags, members) + (text or "")
 
 
@@ -295,8 +336,8 @@ def validate_initial_state(system, q, qd, t, args, tolerance: float | None):
     d = dict(d, q=q, qd=qd)
     # Concrete inputs can still give traced flags: a user function may close over a traced value.
     if is_concrete((q, qd, t, args, fail)):
-        host = jax.device_get((d, fail))  # one transfer; the values are fetched only to report
-        text = _initial_message(*host, static)
+        d_host, fail_host = jax.device_get((d, fail))  # one transfer; fetched only to report
+        text = _initial_message(d_host, fail_host, static)
         if text is not None:
             raise ValueError(text)
         return q, qd

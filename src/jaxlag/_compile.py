@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import os
+from typing import Any, Callable, overload
 
 import equinox as eqx
 import jax
@@ -110,9 +111,9 @@ class _BackendJit:
         functools.update_wrapper(self, fn)
         self._fn = fn
         self._jitkwargs = jitkwargs
-        self._wrappers: dict[bool, object] = {}
+        self._wrappers: dict[bool, Any] = {}
 
-    def _wrapper(self):
+    def _wrapper(self) -> Any:
         options = compiler_options() if _compiled_at_top_level() else {}
         tuned = bool(options)
         wrapper = self._wrappers.get(tuned)
@@ -130,14 +131,22 @@ class _BackendJit:
         return self._wrapper().lower(*args, **kwargs)
 
 
-def filter_jit(fn=None, **jitkwargs):
+@overload
+def filter_jit(fn: None = None, **jitkwargs: Any) -> Callable[[Callable], _BackendJit]: ...
+@overload
+def filter_jit(fn: Callable, **jitkwargs: Any) -> _BackendJit: ...
+def filter_jit(fn: Callable | None = None, **jitkwargs: Any) -> Any:
     """``equinox.filter_jit`` compiling with :func:`compiler_options` (usable as a decorator)."""
     if fn is None:
         return functools.partial(filter_jit, **jitkwargs)
     return _BackendJit(fn, jitkwargs)
 
 
-def jit(fn=None, **jitkwargs):
+@overload
+def jit(fn: None = None, **jitkwargs: Any) -> Callable[[Callable], jax.stages.Wrapped]: ...
+@overload
+def jit(fn: Callable, **jitkwargs: Any) -> jax.stages.Wrapped: ...
+def jit(fn: Callable | None = None, **jitkwargs: Any) -> Any:
     """``jax.jit`` compiling with :func:`compiler_options` when it is a top-level program."""
     if fn is None:
         return functools.partial(jit, **jitkwargs)

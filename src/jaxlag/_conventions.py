@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import inspect
 from collections.abc import Callable
-from typing import Any
+from typing import Any, overload
 
 import equinox as eqx
 import jax
@@ -101,7 +101,17 @@ class UserFunction(eqx.Module):
             ) from error
 
 
-def _wrap(fn, role, n_state, extra_names=_EXTRA_NAMES):
+@overload
+def _wrap(fn: None, role: str, n_state: int, extra_names: tuple[str, ...] = ...) -> None: ...
+@overload
+def _wrap(fn: Callable, role: str, n_state: int, extra_names: tuple[str, ...] = ...) -> UserFunction: ...
+@overload
+def _wrap(
+    fn: Callable | None, role: str, n_state: int, extra_names: tuple[str, ...] = ...
+) -> UserFunction | None: ...
+def _wrap(
+    fn: Callable | None, role: str, n_state: int, extra_names: tuple[str, ...] = _EXTRA_NAMES
+) -> UserFunction | None:
     if fn is None:
         return None
     if isinstance(fn, UserFunction):
@@ -111,11 +121,23 @@ def _wrap(fn, role, n_state, extra_names=_EXTRA_NAMES):
     return UserFunction(fn, _parse_signature(fn, n_state, role, extra_names), role)
 
 
+@overload
+def wrap_state_function(fn: None, role: str) -> None: ...
+@overload
+def wrap_state_function(fn: Callable, role: str) -> UserFunction: ...
+@overload
+def wrap_state_function(fn: Callable | None, role: str) -> UserFunction | None: ...
 def wrap_state_function(fn: Callable | None, role: str) -> UserFunction | None:
     """Wrap ``fn(q, qd, [t], [args])`` (Lagrangian, dissipation, forces, velocity constraints)."""
     return _wrap(fn, role, 2)
 
 
+@overload
+def wrap_configuration_function(fn: None, role: str) -> None: ...
+@overload
+def wrap_configuration_function(fn: Callable, role: str) -> UserFunction: ...
+@overload
+def wrap_configuration_function(fn: Callable | None, role: str) -> UserFunction | None: ...
 def wrap_configuration_function(fn: Callable | None, role: str) -> UserFunction | None:
     """Wrap ``fn(q, [t], [args])`` (holonomic constraints)."""
     return _wrap(fn, role, 1)
@@ -129,7 +151,7 @@ def wrap_event_function(fn: Callable, role: str = "event condition") -> UserFunc
 _HOST_VALUES = (np.ndarray, np.generic, float, int, complex, bool, list, tuple)
 
 
-def as_jax_array(x, dtype=None):
+def as_jax_array(x, dtype=None) -> jax.Array:
     """``jnp.asarray(x, dtype)``, without compiling anything for host values.
 
     JAX compiles a small program for ``jnp.asarray`` of a NumPy array (a copy, once per shape)

@@ -36,7 +36,7 @@ from __future__ import annotations
 import contextlib
 import functools as ft
 import threading
-from typing import Any
+from typing import Any, TypeVar
 
 import diffrax
 import equinox as eqx
@@ -103,6 +103,8 @@ def from_solution(
         ),
     )
     if saved_q is not None:
+        if saved_t is None or saved_qd is None:
+            raise ValueError("from_solution: saved_q needs saved_t and saved_qd as well.")
         # Non-finite saved states of a solve that reports success (StepTo, a projection that
         # failed at a save time). Saves that were not reached (terminal event) hold inf in t.
         reached = jnp.isfinite(saved_t)
@@ -422,7 +424,10 @@ class Report(eqx.Module):
         return self.fn(payload)
 
 
-def raise_from_program(x, failed, report: Report, payload):
+_T = TypeVar("_T")
+
+
+def raise_from_program(x: _T, failed, report: Report, payload) -> _T:
     """``x``, or (inside a compiled program) a host callback raising ``report.error`` with the
     message ``report(payload)`` when ``failed`` (any batch member). ``x`` should be an output the
     caller uses, so that the check is not removed as dead code; transparent to differentiation.

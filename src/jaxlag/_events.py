@@ -22,6 +22,7 @@ once and works under ``vmap`` (each batch member switching at its own times) and
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Callable
 from typing import Any
 
@@ -30,6 +31,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
+from jaxtyping import Array, Bool, Float, Int
 
 from . import _compile as compilation
 from . import _errors as failures
@@ -37,7 +39,7 @@ from ._solver.guard import guard
 from ._checks import initial_activity, validate_initial_state
 from ._mechanics.constant_mass import with_constant_mass
 from ._mechanics.constraints import holonomic_residual
-from ._conventions import wrap_event_function
+from ._conventions import UserFunction, wrap_event_function
 from ._mechanics.kkt import accelerations_and_multipliers
 from ._stabilization import project_state, stages_for_adjoint, wrap_for_projection
 from ._solver.step_once import StepOnce
@@ -56,7 +58,7 @@ class Event(eqx.Module):
     ``terminal``: stop the simulation at the event (otherwise it is only recorded).
     """
 
-    condition: Any
+    condition: UserFunction
     terminal: bool = eqx.field(static=True)
     direction: bool | None = eqx.field(static=True)
 
@@ -64,6 +66,78 @@ class Event(eqx.Module):
         self.condition = wrap_event_function(condition)
         self.terminal = bool(terminal)
         self.direction = direction
+
+
+_DEFAULT_ROOT_FINDER = optx.Newton(rtol=1e-13, atol=1e-13)
+
+
+class Events(eqx.Module):
+    """The events of :func:`~jaxlag.simulate` (``events=jl.Events(...)``): user conditions and
+    how the segmented integration that handles them (and unilateral constraints) runs.
+
+    Construct it with the conditions as positional arguments::
+
+        jl.Events(jl.Event(hits_floor), jl.Event(too_fast, terminal=False), max_segments=16)
+        jl.Events(*conditions)  # from a list
+        jl.Events(max_segments=32)  # no user condition: a system with unilateral constraints
+
+    - ``conditions``: :class:`~jaxlag.Event` s (terminal or only recorded), stored as a tuple.
+    - ``max_segments``: the integration runs in at most this many segments between switches
+      (releases, contacts, events); the segments are a ``lax.scan`` of this static length.
+      Needing more is a failure (``SimulationError``), not a silent truncation.
+    - ``root_finder``: the ``optimistix`` root finder that locates each event on the solver's
+      dense output (default ``optimistix.Newton(rtol=1e-13, atol=1e-13)``).
+
+    The segmented mode runs when the system has ``unilateral`` constraints or ``conditions`` is
+    non-empty; it needs save times ``ts``. ``simulate(..., events=...)`` also takes a single
+    :class:`~jaxlag.Event` or a sequence of them, as ``Events(*conditions)``.
+    """
+
+    conditions: tuple[Event, ...]
+    max_segments: int = eqx.field(static=True)
+    root_finder: optx.AbstractRootFinder
+
+    def __init__(
+        self,
+        *conditions: Event,
+        max_segments: int = 8,
+        root_finder: optx.AbstractRootFinder = _DEFAULT_ROOT_FINDER,
+    ):
+        for condition in conditions:
+            if not isinstance(condition, Event):
+                hint = (
+                    " Pass the conditions as separate arguments: jl.Events(*conditions)."
+                    if isinstance(condition, (tuple, list))
+                    else ""
+                )
+                raise TypeError(f"jl.Events takes jl.Event conditions; got {type(condition).__name__}.{hint}")
+        integer = isinstance(max_segments, numbers.Integral) and not isinstance(max_segments, bool)
+        if not integer or max_segments < 1:
+            raise ValueError(f"max_segments must be a positive integer; got {max_segments!r}.")
+        if not isinstance(root_finder, optx.AbstractRootFinder):
+            raise TypeError(
+                f"root_finder must be an optimistix root finder; got {type(root_finder).__name__}."
+            )
+        self.conditions = tuple(conditions)
+        self.max_segments = int(max_segments)
+        self.root_finder = root_finder
+
+
+def as_events(events) -> Events:
+    """``simulate``'s ``events=``: a :class:`Events`, or one :class:`Event` or a sequence of them
+    (``Events(*events)``)."""
+    if isinstance(events, Events):
+        return events
+    if isinstance(events, Event):
+        return Events(events)
+    if isinstance(events, (tuple, list)) and all(isinstance(e, Event) for e in events):
+        return Events(*events)
+    got = type(events).__name__
+    if isinstance(events, (tuple, list)):
+        got = f"a {got} holding " + ", ".join(
+            sorted({type(e).__name__ for e in events if not isinstance(e, Event)})
+        )
+    raise TypeError(f"events must be a jl.Events, a jl.Event or a sequence of jl.Event; got {got}.")
 
 
 def multiplier_limit(index: int, limit: float, terminal: bool = True, below: bool = False) -> Event:
@@ -87,15 +161,15 @@ class EventLog(eqx.Module):
     events (kinds 1–3).
     """
 
-    time: Any
-    kind: Any
-    index: Any
-    q: Any
-    qd: Any
-    active: Any
-    count: Any
+    time: Float[Array, "*batch segments"]
+    kind: Int[Array, "*batch segments"]
+    index: Int[Array, "*batch segments"]
+    q: Float[Array, "*batch segments n"]
+    qd: Float[Array, "*batch segments n"]
+    active: Bool[Array, "*batch segments m_h"]
+    count: Int[Array, "*batch"]
 
-    def kinds(self):
+    def kinds(self) -> list[str]:
         """The kinds as strings (host-side helper for an unbatched log)."""
         return [KIND_NAMES[int(k)] for k in jax.device_get(self.kind)]
 
@@ -231,6 +305,8 @@ def solve_segments(
             throw=False,  # recorded in `failure`; simulate raises (jaxlag.failures)
             progress_meter=progress_meter,
         )
+        if solution.ts is None or solution.ys is None:  # the SaveAt above saves both
+            raise RuntimeError("jaxlag: diffrax returned no saved times or states for an event segment.")
         (saved_q, saved_qd), (final_q, final_qd) = solution.ys
         t_e = solution.ts[1][0]
         q_e, qd_e = final_q[0], final_qd[0]
@@ -370,8 +446,3 @@ def solve_segments(
     time, kind, index, q_rec, qd_rec, active_rec = records
     log = EventLog(time, kind, index, q_rec, qd_rec, active_rec, count)
     return ts, out_q, out_qd, out_active, log, failure
-
-
-def default_root_finder():
-    """Newton on the dense output, to tolerances well below the default solver tolerance."""
-    return optx.Newton(rtol=1e-13, atol=1e-13)

@@ -9,11 +9,13 @@ The fit minimizes the least-squares loss
 over the free parameters ``θ`` (optionally through a reparameterization, e.g. ``θ = exp(u)`` for
 positive parameters), where NaN observations are masked out (they contribute no residual).
 
-Two optimizers:
+Two kinds of optimizer (``optimizer=``):
 
-* ``method="levenberg_marquardt"`` (default) or ``"gauss_newton"``: optimistix' least-squares
-  solvers. The Jacobian of the residuals is built in forward mode (``diffrax.ForwardMode``), one
-  tangent per parameter, which for a handful of parameters is far cheaper than reverse mode.
+* an optimistix Gauss–Newton-type least-squares solver (``optx.LevenbergMarquardt``, the default,
+  ``optx.GaussNewton``, ``optx.Dogleg``, ``optx.IndirectLevenbergMarquardt``: the subclasses of
+  ``optx.AbstractGaussNewton``), which carries its own ``rtol``/``atol``. The Jacobian of the
+  residuals is built in forward mode (``diffrax.ForwardMode``), one tangent per parameter, which
+  for a handful of parameters is far cheaper than reverse mode.
 * any ``optax.GradientTransformation``: gradient descent on ``ℓ`` with ``jax.value_and_grad``
   through the simulation (the default :class:`~jaxlag.ForwardSensitivities`: forward
   sensitivities for up to 10 free scalars, else ``diffrax.RecursiveCheckpointAdjoint``).
@@ -22,15 +24,16 @@ Standard errors come from the Gauss–Newton approximation at the optimum: with 
 ``J = ∂r/∂θ`` in physical parameters, ``Cov = σ̂² (JᵀJ)⁻¹``, where ``σ̂² = |r|²/(N − p)`` is
 estimated from the residuals unless ``noise_std`` is given (then ``Cov = (JᵀJ)⁻¹``).
 
-Chaotic or long trajectories: ``shooting_segments=S`` splits each experiment into ``S`` segments,
-each starting from its own free state, and adds continuity residuals
+Chaotic or long trajectories: ``shooting=Shooting(segments=S)`` splits each experiment into
+``S`` segments, each starting from its own free state, and adds continuity residuals
 ``w (x_end(segment k) − x_start(segment k+1))`` (multiple shooting).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any
+import operator
+from collections.abc import Callable, Sequence
+from typing import Any, Literal, cast, overload
 
 import diffrax
 import equinox as eqx
@@ -40,13 +43,20 @@ import numpy as np
 import optax
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, ArrayLike, Float
 
 from . import _compile as compilation
+from ._custom_types import Coordinates, RealScalarLike, SaveTimes, Scalar, Velocities
 from ._conventions import wrap_state_function
 from ._adjoint import ForwardSensitivities
+from ._misc import is_concrete
+from ._checks import Checks
 from ._simulate import simulate
+from ._system import System
 from . import _errors as failures
 from ._stabilization import (
+    Baumgarte,
+    Projection,
     consistent_initial_state,
     default_projection_tolerance,
     position_failure_message,
@@ -68,10 +78,10 @@ class Identity(eqx.Module):
 class Positive(eqx.Module):
     """Positive parameter: ``θ = exp(u)``."""
 
-    def to_physical(self, u):
+    def to_physical(self, u: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
         return jnp.exp(u)
 
-    def to_unconstrained(self, p):
+    def to_unconstrained(self, p: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
         return jnp.log(p)
 
 
@@ -81,12 +91,66 @@ class Bounded(eqx.Module):
     lower: float
     upper: float
 
-    def to_physical(self, u):
+    def to_physical(self, u: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
         return self.lower + (self.upper - self.lower) * jax.nn.sigmoid(u)
 
-    def to_unconstrained(self, p):
+    def to_unconstrained(self, p: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
         s = (p - self.lower) / (self.upper - self.lower)
         return jnp.log(s) - jnp.log1p(-s)
+
+
+# ----------------------------------------------------------------------------- options
+#: ``q`` or ``q̇`` of every shooting segment's starting state, one row per experiment and segment.
+SegmentStates = Float[Array, "experiments segments n"]
+
+
+def _index_tuple(indices) -> tuple:
+    return tuple(operator.index(i) for i in indices)  # ints only: a float index is a TypeError
+
+
+def _state_pair(states):
+    return None if states is None else tuple(states)
+
+
+class Shooting(eqx.Module):
+    """Multiple shooting, the ``shooting=`` option of :func:`fit`.
+
+    - ``segments``: each experiment is split into this many segments (it must divide
+      ``len(ts) − 1``; segments share their boundary save times), each starting from its own
+      free state. ``1`` (the default) is single shooting.
+    - ``continuity_weight``: the weight ``w > 0`` of the continuity residuals
+      ``w (x_end(segment k) − x_start(segment k+1))``.
+    - ``states``: optional ``(q, qd)`` of shape (E, S, n) each, the starting guesses of the
+      segment states (default: a simulation with the starting parameters).
+    - ``periodic_coordinates``: indices of angle coordinates whose continuity gaps are taken
+      modulo 2π (so segment states may be given in any branch, e.g. from inverse kinematics).
+    """
+
+    segments: int = 1
+    continuity_weight: RealScalarLike = 10.0
+    states: (
+        tuple[Float[ArrayLike, "experiments segments n"], Float[ArrayLike, "experiments segments n"]] | None
+    ) = eqx.field(default=None, converter=_state_pair)
+    periodic_coordinates: tuple[int, ...] = eqx.field(default=(), converter=_index_tuple)
+
+    def __check_init__(self):
+        if isinstance(self.segments, bool) or not isinstance(self.segments, (int, np.integer)):
+            raise TypeError(f"Shooting(segments=...) must be an int; got {self.segments!r}.")
+        if self.segments < 1:
+            raise ValueError(
+                f"Shooting(segments={self.segments}): the number of shooting segments must be at "
+                "least 1 (1 is single shooting)."
+            )
+        if is_concrete(self.continuity_weight) and not np.all(np.asarray(self.continuity_weight) > 0):
+            raise ValueError(
+                f"Shooting(continuity_weight={self.continuity_weight}): the weight of the continuity "
+                "residuals must be positive."
+            )
+        if self.states is not None and len(self.states) != 2:
+            raise ValueError(
+                "Shooting(states=...) must be a pair (q, qd) of arrays of shape (E, S, n): "
+                f"got {len(self.states)} items."
+            )
 
 
 # ----------------------------------------------------------------------------- data
@@ -98,17 +162,20 @@ class Experiment(eqx.Module):
     experiments of equal shapes are passed as a list (stacked and ``vmap``-ed internally).
     """
 
-    ts: Any
-    observations: Any
-    q0: Any
-    qd0: Any
+    ts: SaveTimes
+    observations: Float[ArrayLike, "times k"]
+    q0: Coordinates
+    qd0: Velocities
 
 
 def _observe_coordinates(q, qd):
     return q
 
 
-def _stack(experiments) -> Experiment:
+def _stack(experiments) -> Any:
+    """The experiments stacked: an :class:`Experiment` of NumPy arrays with a leading axis E
+    (``ts`` (E, T), ``observations`` (E, T, k), ``q0``, ``qd0`` (E, n)), not the ``ArrayLike``
+    fields a user's Experiment declares."""
     if isinstance(experiments, Experiment):
         experiments = [experiments]
     experiments = list(experiments)
@@ -145,15 +212,15 @@ class FitResult(eqx.Module):
     ``segment_states``: ``(q, qd)`` of shape (E, S, n), the state each shooting segment starts from.
     """
 
-    params: Any
-    standard_errors: Any
-    covariance: Any
-    residual_std: Any
-    loss_history: Any
-    initial_states: Any
+    params: dict[str, Array]
+    standard_errors: dict[str, Array]
+    covariance: Float[Array, "p p"]
+    residual_std: Scalar
+    loss_history: Float[np.ndarray, " steps"]
+    initial_states: tuple[Float[Array, "experiments n"], Float[Array, "experiments n"]]
     num_steps: int
     converged: bool
-    segment_states: Any = None
+    segment_states: tuple[SegmentStates, SegmentStates] | None = None
 
 
 # ----------------------------------------------------------------------------- model
@@ -189,8 +256,33 @@ class _Model(eqx.Module):
     spec: _ParamSpec
     segments: int = eqx.field(static=True)
     estimate_initial_state: bool = eqx.field(static=True)
-    simulate_kwargs: tuple = eqx.field(static=True)
+    # The options of the simulation, passed to jl.simulate. Module fields (not static): under
+    # the fit's filter_jit their Python numbers are part of the cache key, so a second fit with
+    # equal options reuses the compiled programs, and array-valued options are traced.
+    solver: diffrax.AbstractSolver
+    stepsize_controller: diffrax.AbstractStepSizeController
+    max_steps: int = eqx.field(static=True)
+    dt0: Any = None
+    projection: Any = None
+    baumgarte: Any = None
     periodic: tuple = eqx.field(static=True, default=())
+
+    def simulate(self, q0, qd0, ts, args, **kwargs):
+        """:func:`~jaxlag.simulate` of the system with the fit's simulation options."""
+        return simulate(
+            self.system,
+            q0,
+            qd0,
+            ts,
+            args=args,
+            solver=self.solver,
+            stepsize_controller=self.stepsize_controller,
+            dt0=self.dt0,
+            max_steps=self.max_steps,
+            projection=self.projection,
+            baumgarte=self.baumgarte,
+            **kwargs,
+        )
 
     def physical(self, flat):
         params = self.spec.unravel(flat)
@@ -227,7 +319,7 @@ class _Model(eqx.Module):
         args = {**data["fixed"], **params}
 
         def one_segment(ts, q0, qd0):
-            kwargs = dict(self.simulate_kwargs)
+            kwargs = {}
             residual = jnp.zeros((), q0.dtype)
             if self.system.is_constrained:
                 if health:
@@ -235,8 +327,8 @@ class _Model(eqx.Module):
                 else:
                     q0, qd0 = consistent_initial_state(self.system, q0, qd0, ts[0], args)
             if health:  # projected states are on the manifold: the failure record covers the rest
-                kwargs.update(throw=False, check_times=False, check_initial_state=False)
-            traj = simulate(self.system, q0, qd0, ts, args=args, adjoint=adjoint, **kwargs)
+                kwargs.update(throw=False, checks=Checks(initial_state=False, times=False))
+            traj = self.simulate(q0, qd0, ts, args, adjoint=adjoint, **kwargs)
             y = jax.vmap(lambda q, qd, t: self.observe(q, qd, t=t, args=args))(traj.q, traj.qd, ts)
             return y, traj.q[-1], traj.qd[-1], (traj.failure, residual)
 
@@ -250,7 +342,11 @@ class _Model(eqx.Module):
             y, q_end, qd_end, checks = jax.vmap(jax.vmap(one_segment))(data["ts_seg"], states[0], states[1])
         return (y, q_end, qd_end, checks) if health else (y, q_end, qd_end)
 
-    def residuals(self, free, data, fixed_states, adjoint, health=False):
+    @overload
+    def residuals(self, free, data, fixed_states, adjoint, health: Literal[False] = False) -> jax.Array: ...
+    @overload
+    def residuals(self, free, data, fixed_states, adjoint, health: Literal[True]) -> tuple[Any, Any]: ...
+    def residuals(self, free, data, fixed_states, adjoint, health: bool = False) -> Any:
         """The weighted residuals; with ``health=True`` also the checks of
         :meth:`observations_of` (the host raises with :func:`_raise_for_health`)."""
         params = self.physical(free["params"])
@@ -416,10 +512,8 @@ def _free_variables_jacobian(model, x, free_template):
 
 
 @compilation.filter_jit
-def _guess_states(system, ts, q0, qd0, args, starts, simulate_kwargs):
-    guess = jax.vmap(lambda t, a, b: simulate(system, a, b, t, args=args, **dict(simulate_kwargs)))(
-        ts, q0, qd0
-    )
+def _guess_states(model, ts, q0, qd0, args, starts):
+    guess = jax.vmap(lambda t, a, b: model.simulate(a, b, t, args))(ts, q0, qd0)
     return guess.q[:, starts], guess.qd[:, starts]
 
 
@@ -427,8 +521,8 @@ def _segment_grid(ts, segments):
     t = ts.shape[-1]
     if (t - 1) % segments:
         raise ValueError(
-            f"shooting_segments={segments} must divide len(ts) − 1 = {t - 1} (segments share their "
-            "boundary save times)."
+            f"Shooting(segments={segments}): the number of segments must divide len(ts) − 1 = "
+            f"{t - 1} (segments share their boundary save times)."
         )
     m = (t - 1) // segments
     index = np.arange(segments)[:, None] * m + np.arange(m + 1)[None, :]
@@ -436,25 +530,27 @@ def _segment_grid(ts, segments):
 
 
 def fit(
-    system,
-    params: dict,
-    experiments,
+    system: System,
+    params: dict[str, ArrayLike],
+    experiments: Experiment | Sequence[Experiment],
     *,
     observe: Callable | None = None,
     args: dict | None = None,
-    transforms: dict | None = None,
-    method: str | optax.GradientTransformation = "levenberg_marquardt",
+    transforms: dict[str, Positive | Bounded] | None = None,
+    optimizer: optx.AbstractLeastSquaresSolver | optax.GradientTransformation = optx.LevenbergMarquardt(
+        rtol=1e-10, atol=1e-10
+    ),
     max_steps: int = 100,
-    rtol: float = 1e-10,
-    atol: float = 1e-10,
     noise_std: float | None = None,
     estimate_initial_state: bool = False,
-    shooting_segments: int = 1,
-    continuity_weight: float = 10.0,
-    segment_states=None,
-    periodic_coordinates=(),
+    shooting: Shooting = Shooting(),
+    solver: diffrax.AbstractSolver = diffrax.Tsit5(),
+    stepsize_controller: diffrax.AbstractStepSizeController = diffrax.PIDController(rtol=1e-10, atol=1e-10),
+    dt0: float | None = None,
+    max_solver_steps: int = 16384,
+    projection: Projection | None = Projection(),
+    baumgarte: Baumgarte | None = None,
     progress: bool = False,
-    simulate_kwargs: dict | None = None,
 ) -> FitResult:
     """Fit ``params`` of ``system`` to ``experiments`` by least squares.
 
@@ -468,17 +564,22 @@ def fit(
       position ``l (sin θ, −cos θ)`` identifies ``g`` and ``l`` separately.
     - ``args``: fixed parameters, merged with ``params`` into the ``args`` the system sees.
     - ``transforms``: per-parameter :class:`Positive` / :class:`Bounded` reparameterizations.
-    - ``method``: ``"levenberg_marquardt"``, ``"gauss_newton"`` or an ``optax`` optimizer.
-    - ``max_steps``, ``rtol``, ``atol``: optimizer limits and (optimistix) tolerances.
+    - ``optimizer``: an optimistix least-squares solver of the Gauss–Newton family (a subclass
+      of ``optx.AbstractGaussNewton``: ``optx.LevenbergMarquardt`` (default, ``rtol = atol =
+      1e-10``), ``optx.GaussNewton``, ``optx.Dogleg``, ``optx.IndirectLevenbergMarquardt``),
+      whose ``rtol``/``atol`` are the fit's tolerances; or an ``optax.GradientTransformation``
+      (gradient descent on the loss). Other optimistix solvers are refused (``TypeError``): the
+      fit steps the solver on a linearization of the residuals, which needs its Gauss–Newton
+      state.
+    - ``max_steps``: the most optimizer steps.
     - ``noise_std``: known observation noise σ; if None it is estimated from the residuals.
     - ``estimate_initial_state``: also fit each experiment's ``(q0, qd0)``.
-    - ``shooting_segments``, ``continuity_weight``, ``segment_states``: multiple shooting; the
-      optional ``segment_states = (q, qd)`` of shape (E, S, n) are the starting guesses of the
-      segment states (default: a simulation with the starting parameters).
-      ``periodic_coordinates``: indices of angle coordinates whose continuity gaps are taken
-      modulo 2π (so segment states may be given in any branch, e.g. from inverse kinematics).
+    - ``shooting``: a :class:`Shooting` (segments, continuity weight, starting guesses of the
+      segment states, periodic coordinates); the default ``Shooting()`` is single shooting.
+    - ``solver``, ``stepsize_controller``, ``dt0``, ``projection``, ``baumgarte``: passed to
+      :func:`~jaxlag.simulate`; ``max_solver_steps`` is its ``max_steps`` (the most integrator
+      steps of one simulation).
     - ``progress``: show a tqdm progress bar (``pip install tqdm``).
-    - ``simulate_kwargs``: passed to :func:`~jaxlag.simulate` (solver, tolerances, ...).
 
     Returns a :class:`FitResult`.
     """
@@ -488,9 +589,11 @@ def fit(
     if unknown:
         raise ValueError(f"transforms name parameters that are not being fitted: {sorted(unknown)}.")
     observe = wrap_state_function(observe or _observe_coordinates, "observation function")
-    simulate_kwargs = dict(simulate_kwargs or {})
-    simulate_kwargs.setdefault("stepsize_controller", diffrax.PIDController(rtol=1e-10, atol=1e-10))
-    simulate_kwargs.setdefault("max_steps", 16384)
+    least_squares = _check_optimizer(optimizer)
+    if not isinstance(shooting, Shooting):
+        raise TypeError(
+            f"shooting must be a jl.Shooting, e.g. shooting=jl.Shooting(segments=4); got {shooting!r}."
+        )
     real = jax.dtypes.canonicalize_dtype(float)  # on the host: no eager device conversions
     fixed = {k: np.asarray(v, real) if isinstance(v, (int, float)) else v for k, v in (args or {}).items()}
     params = {k: np.asarray(v, real) for k, v in params.items()}
@@ -509,64 +612,62 @@ def fit(
         raise ValueError("All observations are NaN: nothing to fit.")
 
     spec = _ParamSpec(tuple(params), tuple(jnp.shape(v) for v in params.values()))
-    kwargs_key = tuple(sorted(simulate_kwargs.items(), key=lambda kv: kv[0]))
     model = _Model(
         system,
         observe,
         transforms,
         spec,
-        int(shooting_segments),
-        bool(estimate_initial_state),
-        kwargs_key,
-        tuple(int(i) for i in periodic_coordinates),
+        segments=int(shooting.segments),
+        estimate_initial_state=bool(estimate_initial_state),
+        solver=solver,
+        stepsize_controller=stepsize_controller,
+        max_steps=int(max_solver_steps),
+        dt0=dt0,
+        projection=projection,
+        baumgarte=baumgarte,
+        periodic=shooting.periodic_coordinates,
     )
     segments = model.segments
     ts_seg, starts = _segment_grid(batch.ts, segments)
     num_experiments = batch.ts.shape[0]
+    segment_states = shooting.states
     if segment_states is None:
         if segments > 1:
-            segment_states = _guess_states(
-                system, batch.ts, batch.q0, batch.qd0, {**fixed, **params}, starts, kwargs_key
-            )
+            segment_states = _guess_states(model, batch.ts, batch.q0, batch.qd0, {**fixed, **params}, starts)
         else:
             segment_states = (batch.q0[:, None], batch.qd0[:, None])
     segment_states = tuple(np.asarray(s, batch.q0.dtype) for s in segment_states)
     expected = (num_experiments, segments, batch.q0.shape[-1])
     if segment_states[0].shape != expected or segment_states[1].shape != expected:
-        raise ValueError(f"segment_states must be (q, qd) of shape {expected} each.")
+        raise ValueError(
+            f"Shooting(states=(q, qd)) must have shape {expected} each (experiments, segments, "
+            f"coordinates); got {segment_states[0].shape} and {segment_states[1].shape}."
+        )
 
     data = {
         "fixed": fixed,
         "observations": batch.observations,
         "noise": 1.0 if noise_std is None else float(noise_std),
         "ts_seg": ts_seg,
-        "continuity_weight": float(continuity_weight),
+        "continuity_weight": float(shooting.continuity_weight),
     }
     free_states, fixed_states = model.split(segment_states)
     free = {"params": _unconstrained(model, params), **free_states}
 
     bar = _progress_bar(max_steps, progress)
     history, converged, steps = [], False, 0
-    if isinstance(method, str):
-        if method not in ("levenberg_marquardt", "gauss_newton"):
-            raise ValueError(
-                f"method must be 'levenberg_marquardt', 'gauss_newton' or an optax optimizer; got {method!r}."
-            )
-        solver = (
-            optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-            if method == "levenberg_marquardt"
-            else optx.GaussNewton(rtol=rtol, atol=atol)
-        )
+    linearization = None
+    if least_squares:
         # Each step: the simulation's residuals and Jacobian at the trial point (one compiled
         # program), then the optimizer's step on that linearization (a small one).
         linearization = _residuals_and_jacobian(model, free, data, fixed_states)
-        state = _ls_init(solver, free, linearization)
+        state = _ls_init(optimizer, free, linearization)
         if max_steps < 1:
             history.append(float(0.5 * np.sum(np.asarray(linearization[0]) ** 2)))
         for steps in range(1, max_steps + 1):
             if steps > 1:
                 linearization = _residuals_and_jacobian(model, state.y_eval, data, fixed_states)
-            free, state, done, loss = _ls_step(solver, free, state, linearization)
+            free, state, done, loss = _ls_step(optimizer, free, state, linearization)
             loss, done = jax.device_get((loss, done))
             if steps == 1:  # the first step evaluates the starting point and stays there
                 history.append(float(loss))
@@ -576,11 +677,11 @@ def fit(
                 converged = True
                 break
     else:
-        opt_state = method.init(free)
+        opt_state = cast(optax.GradientTransformation, optimizer).init(free)  # _check_optimizer
         for steps in range(1, max_steps + 1):
             value, grads = _value_and_grad(model, free, data, fixed_states)
             history.append(float(value))
-            free, opt_state = _optax_update(method, free, opt_state, grads)
+            free, opt_state = _optax_update(optimizer, free, opt_state, grads)
             _tick(bar, history[-1])
         history.append(float(_value_and_grad(model, free, data, fixed_states)[0]))
         converged = True
@@ -593,7 +694,7 @@ def fit(
         )
 
     flat = np.concatenate([np.ravel(np.asarray(leaf)) for leaf in jax.tree.leaves(free)])
-    if isinstance(method, str) and np.array_equal(flat, np.asarray(linearization[2])):
+    if linearization is not None and np.array_equal(flat, np.asarray(linearization[2])):
         r, jac_free, _ = linearization  # the last step was taken at (and accepted) this point
     else:
         r, jac_free, _ = _residuals_and_jacobian(model, free, data, fixed_states)
@@ -612,6 +713,39 @@ def fit(
         steps,
         converged,
         states,
+    )
+
+
+def _check_optimizer(optimizer) -> bool:
+    """Whether ``optimizer`` is an optimistix least-squares solver that :func:`fit` can step
+    (``True``) or an optax optimizer (``False``); a ``TypeError`` for anything else."""
+    if isinstance(optimizer, optx.AbstractGaussNewton):
+        return True
+    if isinstance(optimizer, optax.GradientTransformation):
+        return False
+    supported = (
+        "optx.LevenbergMarquardt, optx.GaussNewton, optx.Dogleg or optx.IndirectLevenbergMarquardt "
+        "(subclasses of optx.AbstractGaussNewton)"
+    )
+    if isinstance(optimizer, str):
+        solver = {"levenberg_marquardt": "LevenbergMarquardt", "gauss_newton": "GaussNewton"}.get(optimizer)
+        hint = (
+            f" Pass optimizer=optx.{solver}(rtol=1e-10, atol=1e-10) (import optimistix as optx)."
+            if solver
+            else ""
+        )
+        raise TypeError(
+            f"optimizer must be a solver object, not the string {optimizer!r}: one of {supported}, "
+            f"or an optax.GradientTransformation.{hint}"
+        )
+    if isinstance(optimizer, optx.AbstractLeastSquaresSolver):
+        raise TypeError(
+            f"jl.fit steps the least-squares solver on a linearization of the residuals, which needs "
+            f"a Gauss–Newton-type solver: {supported}; got {type(optimizer).__name__}."
+        )
+    raise TypeError(
+        f"optimizer must be an optimistix least-squares solver, {supported}, or an "
+        f"optax.GradientTransformation (gradient descent on the loss); got {type(optimizer).__name__}."
     )
 
 
@@ -661,29 +795,45 @@ def _progress_bar(total, enabled):
 
 
 def least_squares_loss(
-    system,
-    params: dict,
-    experiments,
+    system: System,
+    params: dict[str, ArrayLike],
+    experiments: Experiment | Sequence[Experiment],
     *,
     observe: Callable | None = None,
     args: dict | None = None,
     noise_std: float = 1.0,
-    simulate_kwargs: dict | None = None,
-):
+    solver: diffrax.AbstractSolver = diffrax.Tsit5(),
+    stepsize_controller: diffrax.AbstractStepSizeController = diffrax.PIDController(rtol=1e-10, atol=1e-10),
+    dt0: float | None = None,
+    max_solver_steps: int = 2**16,
+    adjoint: diffrax.AbstractAdjoint | ForwardSensitivities = ForwardSensitivities(),
+    projection: Projection | None = Projection(),
+    baumgarte: Baumgarte | None = None,
+) -> Scalar:
     """The fit's loss ``½ Σ r²`` at physical ``params`` (single shooting, known initial states).
 
-    Differentiable with ``jax.grad`` (the default adjoint of :func:`~jaxlag.simulate`) and
-    ``jax.jacfwd`` (pass ``simulate_kwargs={"adjoint": diffrax.ForwardMode()}``); useful to check
-    gradients or to drive your own optimizer.
+    Differentiable with ``jax.grad`` (the default ``adjoint``, as in :func:`~jaxlag.simulate`)
+    and ``jax.jacfwd`` (pass ``adjoint=diffrax.ForwardMode()``); useful to check gradients or to
+    drive your own optimizer. ``solver``, ``stepsize_controller``, ``dt0``, ``adjoint``,
+    ``projection`` and ``baumgarte`` are passed to :func:`~jaxlag.simulate`, and
+    ``max_solver_steps`` as its ``max_steps``.
     """
     batch = _stack(experiments)
     observe = wrap_state_function(observe or _observe_coordinates, "observation function")
-    simulate_kwargs = dict(simulate_kwargs or {})
-    adjoint = simulate_kwargs.pop("adjoint", ForwardSensitivities())
-    simulate_kwargs.setdefault("stepsize_controller", diffrax.PIDController(rtol=1e-10, atol=1e-10))
     spec = _ParamSpec(tuple(params), tuple(jnp.shape(v) for v in params.values()))
     model = _Model(
-        system, observe, {}, spec, 1, False, tuple(sorted(simulate_kwargs.items(), key=lambda kv: kv[0]))
+        system,
+        observe,
+        {},
+        spec,
+        segments=1,
+        estimate_initial_state=False,
+        solver=solver,
+        stepsize_controller=stepsize_controller,
+        max_steps=int(max_solver_steps),
+        dt0=dt0,
+        projection=projection,
+        baumgarte=baumgarte,
     )
     data = {
         "fixed": dict(args or {}),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import jax
+import jax.core
 
 
 def is_concrete(tree) -> bool:

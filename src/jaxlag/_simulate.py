@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools as ft
-from typing import Any
+from collections.abc import Sequence
+from typing import Any, cast
 
 import diffrax
 import equinox as eqx
@@ -17,12 +18,13 @@ from . import _errors as failures
 from ._solver.guard import guard, saving_guard_state
 from ._solver import tangent_solve
 from ._misc import is_concrete
-from ._checks import validate_initial_state
-from ._tolerances import default_constraint_tolerance, default_solver_tolerance
+from ._checks import Checks, validate_initial_state
+from ._tolerances import default_solver_tolerance
 from ._conventions import as_array_leaves
 from ._mechanics.constant_mass import with_constant_mass
 from ._conventions import as_float_state, as_jax_array
-from ._events import Event, default_root_finder, solve_segments
+from ._custom_types import Args, Coordinates, RealScalarLike, SaveTimes, Velocities
+from ._events import Event, Events, as_events, solve_segments
 from ._vector_field import EquationsOfMotion
 from ._adjoint import (
     ForwardSensitivities,
@@ -40,8 +42,6 @@ from ._stabilization import (
 from ._solver.step_once import StepOnce
 from ._system import System
 from ._trajectory import Trajectory
-
-_AUTO = "auto"
 
 
 def _save_times_message(ts) -> str | None:
@@ -191,13 +191,39 @@ def _solve(
     return _finish(system, fast, projection, solution, solution.ys, t0, t1, q0, qd0, args, max_steps)
 
 
-def _user_functions(inputs):
+class SimulationInputs(eqx.Module):
+    """The inputs of one simulation, as :class:`_Run` receives them: a pytree whose inexact array
+    leaves are what ``jax.grad`` may differentiate (:mod:`jaxlag.sensitivities`; the other leaves
+    are static). ``events``: the user conditions and the segmented integration's options (only
+    read when the run is segmented); ``event``: a diffrax event (plain solves only)."""
+
+    system: System
+    q0: Any
+    qd0: Any
+    t0: Any
+    t1: Any
+    ts: Any
+    dt0: Any
+    args: Any
+    saveat: diffrax.SaveAt
+    solver: diffrax.AbstractSolver
+    stepsize_controller: diffrax.AbstractStepSizeController
+    baumgarte: Baumgarte | None
+    projection: Projection | None
+    events: Events
+    event: diffrax.Event | None
+
+
+# The inputs that the solver steps see: the only ones the one-loop tangent solve may perturb.
+_STEPPED = frozenset({"system", "q0", "qd0", "args", "baumgarte", "projection"})
+
+
+def _user_functions(inputs: SimulationInputs):
     """Every function of the system (Lagrangian, constraints, dissipation, forces) evaluated
     once at the initial state, for :func:`captures_traced_values`: the solver loop calls
     nothing else that a user wrote (the solver, controller and projection are diffrax's and
     jaxlag's modules, whose arrays are inputs, not captured values)."""
-    system, q0, qd0, t0 = inputs[:4]
-    args = inputs[7]
+    system, q0, qd0, t0, args = inputs.system, inputs.q0, inputs.qd0, inputs.t0, inputs.args
     state = {
         "lagrangian": (q0, qd0),
         "holonomic": (q0,),
@@ -229,31 +255,17 @@ def _solve_with_tangents(run, static, primals, tangents, axes, structure):
     def inputs_of(values):
         return eqx.combine(jax.tree.unflatten(structure, values), static)
 
-    (
-        system,
-        q0,
-        qd0,
-        t0,
-        t1,
-        _,
-        dt0,
-        args,
-        saveat,
-        solver,
-        stepsize_controller,
-        baumgarte,
-        projection,
-        _,
-        _,
-    ) = inputs_of(leaves)
-    system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation
+    inputs = inputs_of(leaves)
+    inputs.system.check(inputs.q0, inputs.qd0, inputs.t0, inputs.args)  # shapes only: once per compilation
     forward = diffrax.ForwardMode()
 
     def prepared(values):
-        system, q0, qd0, t0, _, _, _, args, _, solver, _, baumgarte, projection, _, _ = inputs_of(values)
-        solver = stages_for_forward_mode(solver)
-        _, solver, term = _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection, forward)
-        return tangent_solve.partition_inexact((solver, term, (q0, qd0), args))
+        i = inputs_of(values)
+        solver = stages_for_forward_mode(i.solver)
+        _, solver, term = _prepare(
+            i.system, i.q0, i.qd0, i.t0, i.args, solver, i.baumgarte, i.projection, forward
+        )
+        return tangent_solve.partition_inexact((solver, term, (i.q0, i.qd0), i.args))
 
     pieces, piece_tangents, piece_static = tangent_solve.push(
         prepared, (leaves,), (tangents,), in_axes=(axes,)
@@ -261,19 +273,19 @@ def _solve_with_tangents(run, static, primals, tangents, axes, structure):
     solver, term, y0, _ = eqx.combine(pieces, piece_static)
     solver_tangent, term_tangent, y0_tangent, args_tangent = piece_tangents
     # The projected solver's system (M found constant, from the parameters) has tangents too.
-    projected = getattr(solver_tangent, "system", None) if projection is not None else None
+    projected = getattr(solver_tangent, "system", None) if inputs.projection is not None else None
     stepper = tangent_solve.TangentSolver(solver, projected)
-    controller = guard(stepsize_controller)
+    controller = guard(inputs.stepsize_controller)
     variational = tangent_solve.TangentTerm(term, term_tangent, args_tangent)
     solution = _integrate(
         variational,
         stepper,
-        t0,
-        t1,
-        dt0,
+        inputs.t0,
+        inputs.t1,
+        inputs.dt0,
         (y0, y0_tangent),
-        args,
-        saveat,
+        inputs.args,
+        inputs.saveat,
         controller,
         forward,
         None,
@@ -281,14 +293,18 @@ def _solve_with_tangents(run, static, primals, tangents, axes, structure):
         run.progress_meter,
         with_tangents=True,
     )
+    if solution.ys is None:  # inputs.saveat saves states
+        raise RuntimeError("jaxlag: diffrax returned no saved states.")
     ys, ys_tangent = solution.ys
     ys_tangent = jax.tree.map(lambda x: jnp.moveaxis(x, 1, 0), ys_tangent)  # (k, T, ...)
     term_dyn, term_static = tangent_solve.partition_inexact(term)
 
     def finished(values, term_values, ys):
-        system, q0, qd0, t0, t1, _, _, args, _, _, _, _, projection, _, _ = inputs_of(values)
+        i = inputs_of(values)
         fast = eqx.combine(term_values, term_static).vector_field.system
-        trajectory = _finish(system, fast, projection, solution, ys, t0, t1, q0, qd0, args, run.max_steps)
+        trajectory = _finish(
+            i.system, fast, i.projection, solution, ys, i.t0, i.t1, i.q0, i.qd0, i.args, run.max_steps
+        )
         return eqx.partition(trajectory, eqx.is_inexact_array)
 
     return tangent_solve.push(
@@ -306,48 +322,30 @@ class _Run(eqx.Module):
     segmented: bool = eqx.field(static=True)
     max_steps: Any = eqx.field(static=True)
     progress_meter: Any
-    max_segments: int = eqx.field(static=True)
-    event_root_finder: Any
     check: bool = eqx.field(static=True)
     tolerance: Any
 
-    def may_solve_with_tangents(self, inputs) -> bool:
+    def may_solve_with_tangents(self, inputs: SimulationInputs) -> bool:
         """Whether :meth:`solves_with_tangents` holds for some perturbed inputs (those of the
         steps): the run's options allow the tangent solve."""
         return self.solves_with_tangents(inputs, None)
 
-    def solves_with_tangents(self, inputs, perturbed) -> bool:
+    def solves_with_tangents(self, inputs: SimulationInputs, perturbed) -> bool:
         """Whether :func:`_solve_with_tangents` gives this run's forward sensitivities when the
         inexact input leaves flagged in ``perturbed`` (a list in leaf order) are differentiated:
         a plain solve (no events), an explicit Runge–Kutta solver, a guarded controller, states
         saved as they are, and no perturbed time, save time, solver, controller or progress
         meter."""
-        (
-            system,
-            q0,
-            qd0,
-            t0,
-            t1,
-            ts,
-            dt0,
-            args,
-            saveat,
-            solver,
-            stepsize_controller,
-            baumgarte,
-            projection,
-            events,
-            event,
-        ) = inputs
-        if self.segmented or event is not None or events:
+        if self.segmented or inputs.event is not None or inputs.events.conditions:
             return False
         # An explicit Runge–Kutta method (Euler included), not wrapped: its step of the
         # variational equations is exactly the jvp of its step. (A wrapper may transform the
         # state nonlinearly; other solvers take the general path.)
+        solver, saveat = inputs.solver, inputs.saveat
         explicit = isinstance(solver, (diffrax.AbstractERK, diffrax.Euler)) and not isinstance(
             solver, diffrax.AbstractWrappedSolver
         )
-        if not explicit or isinstance(stepsize_controller, diffrax.StepTo):
+        if not explicit or isinstance(inputs.stepsize_controller, diffrax.StepTo):
             return False
         subs = jax.tree.leaves(saveat.subs, is_leaf=lambda x: isinstance(x, diffrax.SubSaveAt))
         if (
@@ -359,26 +357,11 @@ class _Run(eqx.Module):
             return False
         if perturbed is None:
             return True
-        counts = [len(jax.tree.leaves(eqx.filter(x, eqx.is_inexact_array))) for x in inputs]
-        stepped = (
-            True,
-            True,
-            True,
-            False,
-            False,
-            False,
-            False,
-            True,
-            False,
-            False,
-            False,
-            True,
-            True,
-            False,
-            False,
-        )  # system, q0, qd0, args, baumgarte, projection
-        flags = iter(perturbed)
-        return all(not next(flags) or ok for ok, count in zip(stepped, counts) for _ in range(count))
+        # The field of each inexact leaf, in the leaf order of `perturbed`.
+        paths = jax.tree_util.tree_leaves_with_path(eqx.filter(inputs, eqx.is_inexact_array))
+        return all(
+            path[0].name in _STEPPED or not flag for (path, _), flag in zip(paths, perturbed, strict=True)
+        )
 
     def push_along(self, primals, static, tangents, axes, structure):
         """``(outputs, tangents, rest)`` along k directions: :func:`_solve_with_tangents`."""
@@ -388,67 +371,51 @@ class _Run(eqx.Module):
         """``jax.eval_shape`` of :meth:`push_along`."""
         return eqx.filter_eval_shape(_solve_with_tangents, self, static, primals, tangents, axes, structure)
 
-    def __call__(self, inputs, adjoint):
-        (
-            system,
-            q0,
-            qd0,
-            t0,
-            t1,
-            ts,
-            dt0,
-            args,
-            saveat,
-            solver,
-            stepsize_controller,
-            baumgarte,
-            projection,
-            events,
-            event,
-        ) = inputs
+    def __call__(self, inputs: SimulationInputs, adjoint):
+        i = inputs
         if self.segmented:
             ts_out, q, qd, active, log, failure = solve_segments(
-                system,
-                q0,
-                qd0,
-                t0,
-                t1,
-                ts,
-                dt0,
-                args,
-                solver,
-                stepsize_controller,
+                i.system,
+                i.q0,
+                i.qd0,
+                i.t0,
+                i.t1,
+                i.ts,
+                i.dt0,
+                i.args,
+                i.solver,
+                i.stepsize_controller,
                 self.max_steps,
                 adjoint,
                 self.progress_meter,
-                baumgarte,
-                projection,
-                events,
-                self.max_segments,
-                self.event_root_finder,
+                i.baumgarte,
+                i.projection,
+                i.events.conditions,
+                i.events.max_segments,
+                i.events.root_finder,
                 self.check,
                 self.tolerance,
             )
             return Trajectory.from_states(
-                system, ts_out, q, qd, args, active=active, events=log, failure=failure
+                i.system, ts_out, q, qd, i.args, active=active, events=log, failure=failure
             )
         return _solve(
-            system,
-            q0,
-            qd0,
-            t0,
-            t1,
-            dt0,
-            args,
-            solver,
-            stepsize_controller,
-            saveat,
+            i.system,
+            i.q0,
+            i.qd0,
+            i.t0,
+            i.t1,
+            i.dt0,
+            i.args,
+            i.solver,
+            i.stepsize_controller,
+            i.saveat,
             self.max_steps,
             adjoint,
-            event,
+            i.event,
             self.progress_meter,
-            baumgarte,
-            projection,
+            i.baumgarte,
+            i.projection,
             self.check,
             self.tolerance,
         )
@@ -456,16 +423,16 @@ class _Run(eqx.Module):
 
 def simulate(
     system: System,
-    q0,
-    qd0,
-    ts=None,
+    q0: Coordinates,
+    qd0: Velocities,
+    ts: SaveTimes | None = None,
     *,
-    t0=None,
-    t1=None,
-    args: Any = None,
+    t0: RealScalarLike | None = None,
+    t1: RealScalarLike | None = None,
+    args: Args = None,
     solver: diffrax.AbstractSolver | None = None,
     stepsize_controller: diffrax.AbstractStepSizeController | None = None,
-    dt0=None,
+    dt0: RealScalarLike | None = None,
     saveat: diffrax.SaveAt | None = None,
     max_steps: int | None = 2**16,
     adjoint: diffrax.AbstractAdjoint | ForwardSensitivities | None = None,
@@ -473,13 +440,9 @@ def simulate(
     throw: bool = True,
     progress_meter: diffrax.AbstractProgressMeter | None = None,
     baumgarte: Baumgarte | None = None,
-    projection: Projection | None | str = _AUTO,
-    check_initial_state: bool = True,
-    check_times: bool = True,
-    constraint_tolerance: float | None = None,
-    events=(),
-    max_segments: int = 8,
-    event_root_finder=None,
+    projection: Projection | None = Projection(),
+    checks: Checks = Checks(),
+    events: Events | Event | Sequence[Event] = Events(),
 ) -> Trajectory:
     """Integrate the equations of motion of ``system`` from ``(q0, qd0)``.
 
@@ -490,11 +453,16 @@ def simulate(
     - ``ts``: increasing save times; the integration runs from ``ts[0]`` to ``ts[-1]``.
       Alternatively give ``t0``, ``t1`` and a ``diffrax.SaveAt``.
     - ``args``: parameters (any pytree) passed to every user function that declares ``args``.
-    - ``check_times``: traced ``ts`` (inside ``jit``/``vmap``) are checked to increase inside the
-      compiled program (and diffrax checks its save times there too). Pass ``False`` when you
-      have checked them yourself, as ``jl.fit`` does once on the host: the program then has no
-      host callback for them, so JAX's persistent cache can store it. Concrete ``ts`` are
-      always checked, on the host.
+    - ``checks``: a :class:`~jaxlag.Checks` of the input checks (default ``jl.Checks()``: all
+      on). ``initial_state``: raise if ``(q0, qd0)`` is non-finite, has a singular mass matrix,
+      redundant constraints, or is off the constraint manifold by more than
+      ``constraint_tolerance`` (default 1e-8 in float64, ``√ε`` = 3.5e-4 in float32; see
+      :func:`~jaxlag.consistent_initial_state`); non-finite parameters in ``args`` are an error.
+      ``times``: traced ``ts`` (inside ``jit``/``vmap``) are checked to increase inside the
+      compiled program (and diffrax checks its save times there too); pass
+      ``jl.Checks(times=False)`` when you have checked them yourself, as ``jl.fit`` does once
+      on the host, so that the program has no host callback and JAX's persistent cache can
+      store it. Concrete ``ts`` are always checked, on the host.
 
     Every diffrax option passes through unchanged: ``solver`` (default ``diffrax.Tsit5()``),
     ``stepsize_controller`` (default ``diffrax.PIDController(rtol=1e-10, atol=1e-10)``, in
@@ -507,13 +475,10 @@ def simulate(
 
     Constrained systems:
 
-    - ``projection``: a :class:`~jaxlag.Projection` applied after every accepted step and at the
-      saved times (default for constrained systems), or ``None``.
+    - ``projection``: the :class:`~jaxlag.Projection` applied after every accepted step and at
+      the saved times (default ``jl.Projection()``), or ``None`` for none. Ignored for a system
+      without constraints.
     - ``baumgarte``: optional :class:`~jaxlag.Baumgarte` feedback in the acceleration constraint.
-    - ``check_initial_state``: raise if ``(q0, qd0)`` is non-finite, has a singular mass matrix,
-      redundant constraints, or is off the constraint manifold by more than
-      ``constraint_tolerance`` (default 1e-8 in float64, ``√ε`` = 3.5e-4 in float32; see
-      :func:`~jaxlag.consistent_initial_state`). Non-finite parameters in ``args`` are an error.
     - ``throw``: on a run-time failure (non-finite equations of motion, a collapsing step size,
       ``max_steps``, ``max_segments``) raise :class:`~jaxlag.SimulationError` with the numbers
       and a diagnosis (:mod:`jaxlag.failures`); with ``False`` return the trajectory, whose
@@ -521,15 +486,20 @@ def simulate(
 
     Events and unilateral constraints (see :mod:`jaxlag.events`):
 
-    - ``events``: :class:`~jaxlag.Event` conditions (terminal or recorded).
-    - If the system has ``unilateral`` constraints or ``events`` are given, the motion is
-      integrated in at most ``max_segments`` segments between switches, each event located by
-      ``event_root_finder`` (default ``optimistix.Newton(rtol=1e-13, atol=1e-13)``); the
-      returned trajectory has ``events`` (an :class:`~jaxlag.EventLog`) and ``active`` set.
-      This mode needs ``ts``.
+    - ``events``: a :class:`~jaxlag.Events` of :class:`~jaxlag.Event` conditions (terminal or
+      recorded) and the options of the segmented integration, e.g.
+      ``jl.Events(jl.Event(f), max_segments=16)``; a single ``jl.Event`` or a sequence of them
+      is taken as ``jl.Events(*events)``.
+    - If the system has ``unilateral`` constraints or there are event conditions, the motion is
+      integrated in at most ``events.max_segments`` segments between switches (default 8),
+      each event located by ``events.root_finder`` (default
+      ``optimistix.Newton(rtol=1e-13, atol=1e-13)``); the returned trajectory has ``events``
+      (an :class:`~jaxlag.EventLog`) and ``active`` set. This mode needs ``ts``.
 
     Returns a :class:`~jaxlag.Trajectory`.
     """
+    if not isinstance(checks, Checks):
+        raise TypeError(f"checks must be a jl.Checks; got {type(checks).__name__}.")
     q0, qd0 = as_float_state(q0, qd0)
     args = as_array_leaves(args)
     user_saveat = saveat is not None
@@ -543,7 +513,7 @@ def simulate(
             text = _save_times_message(ends)
             if text is not None:
                 raise ValueError(text)
-        elif check_times:  # traced save times: the same check, compiled in
+        elif checks.times:  # traced save times: the same check, compiled in
             ts = failures.raise_from_program(ts, ~jnp.all(jnp.diff(ts) > 0), _SAVE_TIMES, ts)
         t0 = ends[0] if t0 is None else t0
         t1 = ends[-1] if t1 is None else t1
@@ -559,67 +529,45 @@ def simulate(
     if stepsize_controller is None:
         tol = default_solver_tolerance(q0.dtype)
         stepsize_controller = diffrax.PIDController(rtol=tol, atol=tol)
-    if constraint_tolerance is None:
-        constraint_tolerance = default_constraint_tolerance(q0.dtype)
+    constraint_tolerance = checks.tolerance(q0.dtype)
     if adjoint is None:
         adjoint = ForwardSensitivities()
     if not isinstance(adjoint, (diffrax.AbstractAdjoint, ForwardSensitivities)):
         raise TypeError(f"adjoint must be a diffrax adjoint or jl.ForwardSensitivities(); got {adjoint!r}.")
     if progress_meter is None:
         progress_meter = diffrax.NoProgressMeter()
-    if isinstance(projection, str):
-        if projection != _AUTO:
-            raise ValueError(f"projection must be a jl.Projection, None or 'auto'; got {projection!r}.")
-        projection = Projection() if system.is_constrained else None
-    if projection is not None and not system.is_constrained:
-        projection = None
-    if isinstance(events, Event):
-        events = (events,)
-    events = tuple(events)
-    for e in events:
-        if not isinstance(e, Event):
-            raise TypeError(f"events must be jl.Event instances; got {type(e).__name__}.")
-    segmented = bool(events) or bool(system.unilateral)
+    projection = as_projection(projection, system)
+    events = as_events(events)
+    segmented = bool(events.conditions) or bool(system.unilateral)
     if segmented and (ts is None or event is not None or user_saveat):
         raise ValueError(
             "Unilateral constraints and jl.Event need save times `ts`, and neither a diffrax "
             "`event` (use jl.Event for conditions) nor a custom `saveat`."
         )
-    check_in_jit = check_initial_state
-    if check_initial_state and is_concrete((q0, qd0, t0, args)):
+    check_in_jit = checks.initial_state
+    if checks.initial_state and is_concrete((q0, qd0, t0, args)):
         # Concrete inputs: check eagerly, so that errors carry the numbers and constraint names.
         # (Returns the state threaded through compiled checks if the flags turn out traced.)
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, constraint_tolerance)
         check_in_jit = False
-    if segmented and event_root_finder is None:
-        event_root_finder = default_root_finder()
 
-    run = _Run(
-        segmented,
-        max_steps,
-        progress_meter,
-        int(max_segments),
-        event_root_finder,
-        check_in_jit,
-        constraint_tolerance,
-    )
-
-    inputs = (
-        system,
-        q0,
-        qd0,
-        t0,
-        t1,
-        ts,
-        dt0,
-        args,
-        saveat,
-        solver,
-        stepsize_controller,
-        baumgarte,
-        projection,
-        events,
-        event,
+    run = _Run(segmented, max_steps, progress_meter, check_in_jit, constraint_tolerance)
+    inputs = SimulationInputs(
+        system=system,
+        q0=q0,
+        qd0=qd0,
+        t0=t0,
+        t1=t1,
+        ts=ts,
+        dt0=dt0,
+        args=args,
+        saveat=saveat,
+        solver=solver,
+        stepsize_controller=stepsize_controller,
+        baumgarte=baumgarte,
+        projection=projection,
+        events=events,
+        event=event,
     )
     if isinstance(adjoint, ForwardSensitivities) and not is_concrete(inputs):
         # One abstract trace: does a user function close over a traced value (a parameter of the
@@ -658,18 +606,28 @@ def simulate(
     return _raise_if_failed(trajectory, system, args) if throw else trajectory
 
 
-def _checked_initial_state(inputs, tolerance):
+def as_projection(projection, system: System) -> Projection | None:
+    """``simulate``'s ``projection=``, checked: ``None`` for a system without constraints."""
+    if isinstance(projection, str):
+        raise TypeError(
+            f"projection must be jl.Projection() or None; got the string {projection!r} (the "
+            "default, jl.Projection(), projects constrained systems and is ignored otherwise)."
+        )
+    return projection if system.is_constrained else None
+
+
+def _checked_initial_state(inputs: SimulationInputs, tolerance) -> SimulationInputs:
     """``inputs`` with ``(q0, qd0)`` checked (:func:`~jaxlag.checks.validate_initial_state`:
     raises here for concrete values, compiles the check in otherwise)."""
-    system, q0, qd0, t0, _, _, _, args = inputs[:8]
-    q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
-    return (system, q0, qd0) + tuple(inputs[3:])
+    q0, qd0 = validate_initial_state(inputs.system, inputs.q0, inputs.qd0, inputs.t0, inputs.args, tolerance)
+    return dataclasses.replace(inputs, q0=q0, qd0=qd0)
 
 
 def _raise_if_failed(trajectory: Trajectory, system: System, args) -> Trajectory:
     """Eagerly (concrete result: synchronous, full diagnosis) or compiled into the program."""
-    if is_concrete(trajectory.failure):
-        failures.raise_if_failed(trajectory.failure, system, args)
+    failure = cast(failures.Failure, trajectory.failure)  # simulate always records how it ended
+    if is_concrete(failure):
+        failures.raise_if_failed(failure, system, args)
         return trajectory
-    q = failures.error_if_failed(trajectory.failure, trajectory.q)
+    q = failures.error_if_failed(failure, trajectory.q)
     return eqx.tree_at(lambda tr: tr.q, trajectory, q)

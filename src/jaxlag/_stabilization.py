@@ -20,6 +20,7 @@ error. Two remedies, usable together:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import diffrax
@@ -27,14 +28,17 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Bool
 
 from . import _compile as compilation
+from ._custom_types import Args, Coordinates, RealScalarLike, Vector, Velocities
 from ._mechanics import constraints as _constraints
 from ._conventions import as_array_leaves, as_jax_array
 from ._mechanics.kkt import deactivate
 from ._mechanics.linalg import solve_psd_least_squares, solve_spd, spd_solver
 from ._mechanics.lagrangian import as_time, mass_matrix, mass_solver
 from ._solver.forwarding import ForwardingSolver
+from ._system import System
 
 
 class Baumgarte(eqx.Module):
@@ -44,8 +48,8 @@ class Baumgarte(eqx.Module):
     critically on a 0.1 time-unit scale.
     """
 
-    alpha: float = 10.0
-    beta: float = 10.0
+    alpha: RealScalarLike = 10.0
+    beta: RealScalarLike = 10.0
 
 
 def _schur_correction(system, solve_mass, rows, residual, active=None):
@@ -144,7 +148,15 @@ class Projection(eqx.Module):
 
     newton_steps: int = eqx.field(static=True, default=2)
 
-    def __call__(self, system, q, qd, t, args, active=None):
+    def __call__(
+        self,
+        system: System,
+        q: Vector,
+        qd: Vector,
+        t: RealScalarLike,
+        args: Args,
+        active: Bool[Array, " m_h"] | None = None,
+    ) -> tuple[Vector, Vector]:
         return project_state(system, q, qd, t, args, self.newton_steps, active)
 
 
@@ -159,7 +171,7 @@ class ProjectedSolver(ForwardingSolver, diffrax.AbstractWrappedSolver):
     forwarded field, see :func:`wrap_for_projection`.
     """
 
-    solver: diffrax.AbstractSolver
+    solver: diffrax.AbstractSolver  # pyright: ignore[reportIncompatibleVariableOverride]
     system: Any
     projection: Projection
     active: Any = None
@@ -186,17 +198,17 @@ def _free_mask(indices, n, dtype, name):
 
 
 def consistent_initial_state(
-    system,
-    q0,
-    qd0,
-    t0=0.0,
-    args=None,
+    system: System,
+    q0: Coordinates,
+    qd0: Velocities,
+    t0: RealScalarLike = 0.0,
+    args: Args = None,
     *,
-    fixed_q=(),
-    fixed_qd=(),
+    fixed_q: int | Sequence[int] = (),
+    fixed_qd: int | Sequence[int] = (),
     newton_steps: int = 20,
     tolerance: float | None = None,
-):
+) -> tuple[Vector, Vector]:
     """Project an approximate initial state onto the constraint manifold.
 
     Positions move by the mass-weighted minimal correction (Newton, ``newton_steps`` fixed

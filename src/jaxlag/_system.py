@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
 from . import _compile as compilation
+from ._custom_types import Args, Coordinates, Matrix, RealScalarLike, Scalar, Vector, Velocities
+from ._mechanics.constant_mass import ConstantMass
 from ._mechanics import constraints as _constraints
 from ._mechanics import kkt as _kkt
 from ._mechanics import lagrangian as _mechanics
@@ -55,10 +57,10 @@ class System(eqx.Module):
     dissipation: UserFunction | None
     forces: UserFunction | None
     least_squares: bool = eqx.field(static=True)
-    unilateral: tuple = eqx.field(static=True)
+    unilateral: tuple[int, ...] = eqx.field(static=True)
     diagonal_mass: bool = eqx.field(static=True)
     # Set by simulate while tracing when M does not depend on the state (jaxlag.constant_mass).
-    constant_mass: Any = None
+    constant_mass: ConstantMass | None = None
 
     def __init__(
         self,
@@ -69,7 +71,7 @@ class System(eqx.Module):
         dissipation: Callable | None = None,
         forces: Callable | None = None,
         least_squares: bool = False,
-        unilateral=(),
+        unilateral: int | Sequence[int] = (),
         diagonal_mass: bool = False,
     ):
         self.lagrangian = wrap_state_function(lagrangian, "lagrangian")
@@ -91,14 +93,14 @@ class System(eqx.Module):
     def is_constrained(self) -> bool:
         return self.holonomic is not None or self.velocity_constraints is not None
 
-    def num_holonomic(self, q, t=0.0, args=None) -> int:
+    def num_holonomic(self, q: Coordinates, t: RealScalarLike = 0.0, args: Args = None) -> int:
         """Number of holonomic constraints ``m_h`` (static, from shapes alone)."""
         if self.holonomic is None:
             return 0
         shape = jax.eval_shape(lambda x: _constraints.holonomic_residual(self, x, t, args), q)
         return shape.shape[0]
 
-    def check(self, q, qd, t=0.0, args=None) -> None:
+    def check(self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None) -> None:
         """Raise a clear error if shapes or output shapes are wrong (costs no computation)."""
         q = jnp.asarray(q)
         qd = jnp.asarray(qd)
@@ -169,51 +171,71 @@ class System(eqx.Module):
             out = check_state_result(self, quantity.__name__.strip("_"), out, q, qd, t, args)
         return out
 
-    def lagrangian_value(self, q, qd, t=0.0, args=None):
+    def lagrangian_value(
+        self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+    ) -> Scalar:
         """``L(q, q̇, t)``."""
         return self._at_state(_mechanics.lagrangian_value, q, qd, t, args)
 
-    def mass_matrix(self, q, qd, t=0.0, args=None):
+    def mass_matrix(
+        self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+    ) -> Matrix:
         """``M = ∂²L/∂q̇²``, shape (n, n)."""
         return self._at_state(_mechanics.mass_matrix, q, qd, t, args)
 
-    def generalized_forces(self, q, qd, t=0.0, args=None):
+    def generalized_forces(
+        self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+    ) -> Vector:
         """``F = ∂L/∂q − (∂²L/∂q̇∂q) q̇ − ∂²L/∂q̇∂t − ∂R/∂q̇ + Q``, shape (n,)."""
         return self._at_state(_mechanics.generalized_forces, q, qd, t, args)
 
-    def momenta(self, q, qd, t=0.0, args=None):
+    def momenta(self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None) -> Vector:
         """``p = ∂L/∂q̇``."""
         return self._at_state(_mechanics.momenta, q, qd, t, args)
 
-    def energy(self, q, qd, t=0.0, args=None):
+    def energy(self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None) -> Scalar:
         """Energy function ``h = q̇·∂L/∂q̇ − L``."""
         return self._at_state(_mechanics.energy, q, qd, t, args)
 
-    def accelerations(self, q, qd, t=0.0, args=None):
+    def accelerations(
+        self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+    ) -> Vector:
         """``q̈`` from the (constrained) equations of motion."""
         return self._at_state(_accelerations, q, qd, t, args)
 
-    def multipliers(self, q, qd, t=0.0, args=None):
+    def multipliers(
+        self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+    ) -> Float[Array, " m_h"]:
         """Holonomic multipliers ``λ`` (m_h,) in ``M q̈ = F + Jᵀλ + Aᵀμ``."""
         return self._at_state(_multipliers, q, qd, t, args)
 
-    def velocity_multipliers(self, q, qd, t=0.0, args=None):
+    def velocity_multipliers(
+        self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+    ) -> Float[Array, " m_v"]:
         """Velocity-constraint multipliers ``μ`` (m_v,) in ``M q̈ = F + Jᵀλ + Aᵀμ``."""
         return self._at_state(_velocity_multipliers, q, qd, t, args)
 
-    def constraint_forces(self, q, qd, t=0.0, args=None):
+    def constraint_forces(
+        self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+    ) -> Vector:
         """Generalized constraint forces ``Qᶜ = Jᵀλ + Aᵀμ``, shape (n,)."""
         return self._at_state(_constraint_forces, q, qd, t, args)
 
-    def constraint_residuals(self, q, qd, t=0.0, args=None):
+    def constraint_residuals(
+        self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+    ) -> tuple[Float[Array, " m_h"], Float[Array, " m_h"], Float[Array, " m_v"]]:
         """``(f, ḟ, g)``: holonomic position and velocity residuals, velocity-constraint residual."""
         return self._at_state(_constraints.constraint_residuals, q, qd, t, args)
 
-    def dissipated_power(self, q, qd, t=0.0, args=None):
+    def dissipated_power(
+        self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+    ) -> Scalar:
         """``q̇·∂R/∂q̇``: power removed by dissipation."""
         return self._at_state(_mechanics.dissipated_power, q, qd, t, args)
 
-    def input_power(self, q, qd, t=0.0, args=None):
+    def input_power(
+        self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+    ) -> Scalar:
         """``q̇·Q``: power delivered by external forces."""
         return self._at_state(_mechanics.input_power, q, qd, t, args)
 

@@ -4,15 +4,20 @@ from __future__ import annotations
 
 from typing import Any
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
 
 from . import _compile as compilation
-from ._errors import raise_if_failed
+from ._custom_types import Args, Multipliers, States, Times
+from ._errors import Failure, raise_if_failed
+from ._events import EventLog
 from ._mechanics import constraints as _constraints
 from ._mechanics import kkt as _kkt
 from ._mechanics import lagrangian as _mechanics
+from ._system import System
 
 
 def _constraint_forces(system, q, qd, t, args, active):
@@ -72,27 +77,38 @@ class Trajectory(eqx.Module):
     state (without any Baumgarte feedback term), with the convention ``M q̈ = F + Jᵀλ + Aᵀμ``.
     """
 
-    t: Any
-    q: Any
-    qd: Any
-    args: Any
-    stats: Any
-    result: Any
+    t: Times
+    q: States
+    qd: States
+    args: Args
+    #: The solver's statistics (``num_steps``, ...; diffrax's, or the variational integrator's).
+    stats: dict[str, Any] | None
+    result: diffrax.RESULTS | None
     # The system is split so that a Trajectory is a valid output of jax.jit / vmap: its arrays
     # (e.g. a neural-network Lagrangian's weights) are leaves, its functions static.
-    system_arrays: Any
+    system_arrays: System
     #: Holonomic activity mask (T, m_h) when unilateral constraints switch, else None.
-    active: Any
+    active: Bool[Array, "*batch times m_h"] | None
     #: :class:`~jaxlag.EventLog` of the switches and events, or None.
-    events: Any
+    events: EventLog | None
     #: :class:`jaxlag.failures.Failure`: how the run ended (``code`` 0: completed), or None.
-    failure: Any
-    system_static: Any = eqx.field(static=True)
+    failure: Failure | None
+    system_static: System = eqx.field(static=True)
 
     @classmethod
     def from_states(
-        cls, system, t, q, qd, args, stats=None, result=None, active=None, events=None, failure=None
-    ):
+        cls,
+        system: System,
+        t: Times,
+        q: States,
+        qd: States,
+        args: Args,
+        stats: dict[str, Any] | None = None,
+        result: diffrax.RESULTS | None = None,
+        active: Bool[Array, "*batch times m_h"] | None = None,
+        events: EventLog | None = None,
+        failure: Failure | None = None,
+    ) -> Trajectory:
         arrays, static = eqx.partition(system, eqx.is_array)
         return cls(t, q, qd, args, stats, result, arrays, active, events, failure, static)
 
@@ -106,7 +122,7 @@ class Trajectory(eqx.Module):
         raise_if_failed(self.failure, None if batched else self.system, None if batched else self.args)
 
     @property
-    def system(self):
+    def system(self) -> System:
         """The :class:`~jaxlag.System` that produced this trajectory."""
         return eqx.combine(self.system_arrays, self.system_static)
 
@@ -123,51 +139,51 @@ class Trajectory(eqx.Module):
         )
 
     @property
-    def accelerations(self):
+    def accelerations(self) -> States:
         """``q̈`` (T, n)."""
         return self._get("accelerations")
 
     @property
-    def multipliers(self):
+    def multipliers(self) -> Multipliers:
         """Holonomic multipliers ``λ`` (T, m_h)."""
         return self._get("multipliers")
 
     @property
-    def velocity_multipliers(self):
+    def velocity_multipliers(self) -> Multipliers:
         """Velocity-constraint multipliers ``μ`` (T, m_v)."""
         return self._get("velocity_multipliers")
 
     @property
-    def constraint_forces(self):
+    def constraint_forces(self) -> States:
         """Generalized constraint forces ``Qᶜ = Jᵀλ + Aᵀμ`` (T, n)."""
         return self._get("constraint_forces")
 
     @property
-    def energy(self):
+    def energy(self) -> Float[Array, "*batch times"]:
         """Energy function ``h = q̇·∂L/∂q̇ − L`` (T,)."""
         return self._get("energy")
 
     @property
-    def momenta(self):
+    def momenta(self) -> States:
         """Generalized momenta ``p = ∂L/∂q̇`` (T, n)."""
         return self._get("momenta")
 
     @property
-    def lagrangian(self):
+    def lagrangian(self) -> Float[Array, "*batch times"]:
         """``L`` along the trajectory (T,)."""
         return self._get("lagrangian")
 
     @property
-    def constraint_residuals(self):
+    def constraint_residuals(self) -> tuple[Multipliers, Multipliers, Multipliers]:
         """``(f, ḟ, g)`` along the trajectory: shapes (T, m_h), (T, m_h), (T, m_v)."""
         return self._get("constraint_residuals")
 
     @property
-    def dissipated_power(self):
+    def dissipated_power(self) -> Float[Array, "*batch times"]:
         """``q̇·∂R/∂q̇`` (T,)."""
         return self._get("dissipated_power")
 
     @property
-    def input_power(self):
+    def input_power(self) -> Float[Array, "*batch times"]:
         """``q̇·Q`` (T,)."""
         return self._get("input_power")

@@ -59,7 +59,7 @@ numerically at the initial state instead.
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import diffrax
 import equinox as eqx
@@ -67,16 +67,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jax.typing import ArrayLike
 
 from . import _compile as compilation
 from ._mechanics import constraints as _constraints
 from ._misc import is_concrete
-from ._checks import validate_initial_state
+from ._checks import Checks, validate_initial_state
 from ._mechanics.dependence import may_depend
 from ._mechanics.kkt import accelerations_and_multipliers, solve_kkt
 from ._mechanics.linalg import solve_spd
 from ._mechanics.lagrangian import as_time, mass_matrix, nonconservative_forces
 from ._conventions import as_array_leaves
+from ._custom_types import Args, Coordinates, RealScalarLike, Velocities
 from ._system import System
 from ._trajectory import Trajectory
 
@@ -97,7 +99,7 @@ class LagrangianStructure(NamedTuple):
     constant_mass: bool
 
 
-def lagrangian_structure(system: System, q, qd, t=0.0, args=None) -> LagrangianStructure:
+def lagrangian_structure(system: System, q, qd, t: ArrayLike = 0.0, args=None) -> LagrangianStructure:
     """Analyse ``L`` statically (shapes only); see :class:`LagrangianStructure`."""
     q = jnp.asarray(q)
     qd = jnp.asarray(qd, q.dtype)
@@ -289,6 +291,7 @@ def _velocity_stage(scheme, system, q1, p_tilde, t1, args, qd_guess, constants):
     success = optx.RESULTS.successful
     empty = jnp.zeros((0,), q1.dtype)
     if scheme.quadratic:
+        minv = mass = None
         if scheme.constant_mass:
             minv, b = constants
         else:
@@ -297,10 +300,10 @@ def _velocity_stage(scheme, system, q1, p_tilde, t1, args, qd_guess, constants):
             mass = mass_matrix(system, q1, qd_guess, t1, args)
             b = _lagrangian_gradient(system, q1, qd_guess, t1, args)[1] - mass @ qd_guess
         diagonal = bool(getattr(system, "diagonal_mass", False))
-        if jac1 is None:
-            qd1 = minv @ (p_tilde - b) if scheme.constant_mass else solve_spd(mass, p_tilde - b, diagonal)
+        if jac1 is None or f_t1 is None:  # both or neither (scheme.constrained)
+            qd1 = minv @ (p_tilde - b) if minv is not None else solve_spd(mass, p_tilde - b, diagonal)
             return qd1, p_tilde, empty, jac1, no_iterations, success
-        if scheme.constant_mass:
+        if minv is not None:
             qd1, nu = _project_with_inverse(minv, p_tilde - b, jac1, -f_t1)
         else:
             qd1, nu = solve_kkt(mass, p_tilde - b, jac1, -f_t1, diagonal_mass=diagonal)
@@ -511,13 +514,13 @@ def _integrate(scheme, system, q0, qd0, t0, dt, args, num_steps, save_every, thr
 
 def simulate_variational(
     system: System,
-    q0,
-    qd0,
+    q0: Coordinates,
+    qd0: Velocities,
     *,
-    dt,
+    dt: RealScalarLike,
     num_steps: int,
-    t0=0.0,
-    args: Any = None,
+    t0: RealScalarLike = 0.0,
+    args: Args = None,
     save_every: int = 1,
     method: str = "auto",
     order: int = 2,
@@ -525,8 +528,7 @@ def simulate_variational(
     newton_atol: float | None = None,
     max_newton_steps: int = 20,
     throw: bool = True,
-    check_initial_state: bool = True,
-    constraint_tolerance: float = 1e-8,
+    checks: Checks = Checks(),
 ) -> Trajectory:
     r"""Integrate ``system`` with a constrained symplectic (variational / RATTLE) integrator.
 
@@ -565,7 +567,9 @@ def simulate_variational(
       are meaningful as absolute numbers for problems of order-one scale; rescale otherwise.
     - ``throw``: raise (also under ``jit``) if a step fails; with ``False`` inspect
       ``traj.result`` and ``traj.stats["failed_step"]``.
-    - ``check_initial_state``, ``constraint_tolerance``: as in :func:`~jaxlag.simulate`.
+    - ``checks``: a :class:`~jaxlag.Checks`, as in :func:`~jaxlag.simulate`: ``initial_state``
+      and ``constraint_tolerance`` (default 1e-8 in float64, ``√ε`` in float32) apply; there
+      are no save times to check (``times`` is ignored).
 
     Returns a :class:`~jaxlag.Trajectory` whose ``qd`` are the velocities of the discrete
     Legendre transform projected onto ``J q̇ + ∂f/∂t = 0``; its derived quantities (energy,
@@ -633,6 +637,7 @@ def simulate_variational(
                 "jaxlag.simulate_variational: method='rattle' needs a Lagrangian quadratic in "
                 "q̇; use method='variational'.",
             )
+            q0 = cast(jax.Array, q0)  # error_if returns its input (typed as any pytree)
         structure = LagrangianStructure(True, False)
     constant_mass = structure.constant_mass and not _has_forces(system)
     default_tolerance = 1e-12 if q0.dtype == jnp.float64 else 1e-5
@@ -646,8 +651,11 @@ def simulate_variational(
         atol=float(default_tolerance if newton_atol is None else newton_atol),
         max_newton_steps=int(max_newton_steps),
     )
-    check_in_jit = check_initial_state
-    if check_initial_state and is_concrete((q0, qd0, t0, args)):
+    if not isinstance(checks, Checks):
+        raise TypeError(f"checks must be a jl.Checks; got {type(checks).__name__}.")
+    constraint_tolerance = checks.tolerance(q0.dtype)
+    check_in_jit = checks.initial_state
+    if checks.initial_state and is_concrete((q0, qd0, t0, args)):
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, constraint_tolerance)
         check_in_jit = False
     return _integrate(

@@ -6,10 +6,10 @@ constrained system, ``M q̈ = F`` otherwise.
 
 from __future__ import annotations
 
-from typing import Any
-
 import equinox as eqx
+from jaxtyping import Array, Bool
 
+from ._custom_types import Args, RealScalarLike, Vector
 from ._mechanics.kkt import accelerations_and_multipliers
 from ._mechanics.lagrangian import unconstrained_accelerations
 from ._stabilization import Baumgarte
@@ -24,9 +24,9 @@ class EquationsOfMotion(eqx.Module):
 
     system: System
     baumgarte: Baumgarte | None = None
-    active: Any = None  # holonomic activity mask (m_h,) while unilateral constraints are off
+    active: Bool[Array, " m_h"] | None = None  # holonomic activity mask while unilateral constraints are off
 
-    def __call__(self, t, y, args):
+    def __call__(self, t: RealScalarLike, y: tuple[Vector, Vector], args: Args) -> tuple[Vector, Vector]:
         q, qd = y
         if self.system.is_constrained:
             qdd = accelerations_and_multipliers(self.system, q, qd, t, args, self.baumgarte, self.active)[0]

@@ -28,14 +28,19 @@ from __future__ import annotations
 from typing import Callable
 
 import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
 
 from ._conventions import wrap_configuration_function
+from ._custom_types import Args, Coordinates, Parameter, RealScalarLike, Velocities
 from .coordinates import RigidBody3D, parameter_value
 from .rotations import unskew
 
 __all__ = ["contact_height", "contact_point", "contact_velocity", "rolling_without_slipping"]
 
 _SHAPES = ("disk", "sphere")
+
+#: The symmetry axis of a disk, in body coordinates.
+Axis = Float[ArrayLike, "3"] | tuple[float, float, float]
 
 
 def _check(body, shape):
@@ -57,8 +62,15 @@ def _offset(centre, rotation, radius, shape, axis):
 
 
 def contact_point(
-    body: RigidBody3D, q, radius, *, shape: str = "disk", axis=(0.0, 0.0, 1.0), t=0.0, args=None
-):
+    body: RigidBody3D,
+    q: Coordinates,
+    radius: Parameter,
+    *,
+    shape: str = "disk",
+    axis: Axis = (0.0, 0.0, 1.0),
+    t: RealScalarLike = 0.0,
+    args: Args = None,
+) -> Float[Array, "3"]:
     """World position of the lowest point ``P`` of a disk (axis ``axis`` in body coordinates)
     or sphere of radius ``radius`` (a number or a function of ``args``)."""
     _check(body, shape)
@@ -67,8 +79,16 @@ def contact_point(
 
 
 def contact_velocity(
-    body: RigidBody3D, q, qd, radius, *, shape: str = "disk", axis=(0.0, 0.0, 1.0), t=0.0, args=None
-):
+    body: RigidBody3D,
+    q: Coordinates,
+    qd: Velocities,
+    radius: Parameter,
+    *,
+    shape: str = "disk",
+    axis: Axis = (0.0, 0.0, 1.0),
+    t: RealScalarLike = 0.0,
+    args: Args = None,
+) -> Float[Array, "3"]:
     """``v_P = ẋ_c + ω × (P − x_c)``: velocity (world axes) of the material point at ``P``."""
     _check(body, shape)
     (centre, rotation), (velocity, rate) = body.pose_and_rates(q, qd, t, args)
@@ -76,7 +96,9 @@ def contact_velocity(
     return velocity + jnp.cross(unskew(rate @ rotation.T), offset)
 
 
-def contact_height(body: RigidBody3D, radius, *, shape: str = "disk", axis=(0.0, 0.0, 1.0)) -> Callable:
+def contact_height(
+    body: RigidBody3D, radius: Parameter, *, shape: str = "disk", axis: Axis = (0.0, 0.0, 1.0)
+) -> Callable:
     """Holonomic contact ``f(q, t, args) = (P_z,)``: the body touches the plane ``z = 0``.
     Its multiplier is the normal force ``N`` (see the module docstring)."""
     _check(body, shape)
@@ -89,10 +111,10 @@ def contact_height(body: RigidBody3D, radius, *, shape: str = "disk", axis=(0.0,
 
 def rolling_without_slipping(
     body: RigidBody3D,
-    radius,
+    radius: Parameter,
     *,
     shape: str = "disk",
-    axis=(0.0, 0.0, 1.0),
+    axis: Axis = (0.0, 0.0, 1.0),
     surface_velocity: Callable | None = None,
 ) -> Callable:
     r"""Velocity constraint ``g(q, qd, t, args) = (v_P − v_s)_{x,y} = 0`` (shape (2,)).

@@ -28,13 +28,15 @@ position maps::
 
 from __future__ import annotations
 
-from typing import Any, Callable, Sequence
+from typing import Callable, Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
 
 from ._conventions import UserFunction, wrap_configuration_function
+from ._custom_types import Args, Coordinates, Parameter, RealScalarLike, Scalar, Vector, Velocities
 from .rotations import unskew
 
 __all__ = [
@@ -50,19 +52,23 @@ __all__ = [
 
 
 # ----------------------------------------------------------------------------- coordinate maps
-def polar(r, theta):
+def polar(r: Float[ArrayLike, "*#shape"], theta: Float[ArrayLike, "*#shape"]) -> Float[Array, "*shape 2"]:
     """Plane polar coordinates: ``(r cos θ, r sin θ)``, θ from the +x axis. Shape ``(..., 2)``."""
     r, theta = jnp.broadcast_arrays(jnp.asarray(r), jnp.asarray(theta))
     return jnp.stack([r * jnp.cos(theta), r * jnp.sin(theta)], axis=-1)
 
 
-def cylindrical(rho, phi, z):
+def cylindrical(
+    rho: Float[ArrayLike, "*#shape"], phi: Float[ArrayLike, "*#shape"], z: Float[ArrayLike, "*#shape"]
+) -> Float[Array, "*shape 3"]:
     """Cylindrical coordinates: ``(ρ cos φ, ρ sin φ, z)``. Shape ``(..., 3)``."""
     rho, phi, z = jnp.broadcast_arrays(jnp.asarray(rho), jnp.asarray(phi), jnp.asarray(z))
     return jnp.stack([rho * jnp.cos(phi), rho * jnp.sin(phi), z], axis=-1)
 
 
-def spherical(r, theta, phi):
+def spherical(
+    r: Float[ArrayLike, "*#shape"], theta: Float[ArrayLike, "*#shape"], phi: Float[ArrayLike, "*#shape"]
+) -> Float[Array, "*shape 3"]:
     """Spherical coordinates, θ the polar angle from +z, φ the azimuth from +x:
     ``(r sin θ cos φ, r sin θ sin φ, r cos θ)``. Shape ``(..., 3)``."""
     r, theta, phi = jnp.broadcast_arrays(jnp.asarray(r), jnp.asarray(theta), jnp.asarray(phi))
@@ -70,7 +76,11 @@ def spherical(r, theta, phi):
     return jnp.stack([r * s * jnp.cos(phi), r * s * jnp.sin(phi), r * jnp.cos(theta)], axis=-1)
 
 
-def planar_chain(angles, lengths, origin=(0.0, 0.0)):
+def planar_chain(
+    angles: Float[ArrayLike, " N"],
+    lengths: Float[ArrayLike, "#N"] | RealScalarLike,
+    origin: Float[ArrayLike, "2"] | tuple[float, float] = (0.0, 0.0),
+) -> Float[Array, "N 2"]:
     """Joint positions of a planar chain of rods hanging from ``origin``, shape ``(N, 2)``.
 
     ``angles`` (N,) are absolute angles from the downward vertical (y up), ``lengths`` (N,) or a
@@ -79,7 +89,8 @@ def planar_chain(angles, lengths, origin=(0.0, 0.0)):
     angles = jnp.asarray(angles)
     lengths = jnp.broadcast_to(jnp.asarray(lengths, angles.dtype), angles.shape)
     steps = jnp.stack([lengths * jnp.sin(angles), -lengths * jnp.cos(angles)], axis=-1)
-    return jnp.asarray(origin, angles.dtype) + jnp.cumsum(steps, axis=0)
+    joints = jnp.cumsum(steps, axis=0)
+    return jnp.broadcast_to(jnp.asarray(origin, angles.dtype), joints.shape) + joints
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -93,7 +104,7 @@ def parameter_value(value, args, name):
     return value
 
 
-def _velocity(fn: UserFunction, q, qd, t, args):
+def _velocity(fn: UserFunction | Callable, q, qd, t, args):
     """``(x, ẋ)`` with ``ẋ = (∂x/∂q) q̇ + ∂x/∂t``: one jvp along ``(q̇, 1)``."""
     t = jnp.asarray(t, dtype=q.dtype)
     return jax.jvp(lambda x, s: jnp.asarray(fn(x, t=s, args=args)), (q, t), (qd, jnp.ones_like(t)))
@@ -123,15 +134,15 @@ class RigidBody2D(eqx.Module):
     """
 
     pose: UserFunction
-    mass: Any
-    inertia: Any
+    mass: Parameter
+    inertia: Parameter
 
-    def __init__(self, pose: Callable, mass, inertia):
+    def __init__(self, pose: Callable, mass: Parameter, inertia: Parameter):
         self.pose = wrap_configuration_function(pose, "rigid body pose function")
         self.mass = mass
         self.inertia = inertia
 
-    def kinetic_energy(self, q, qd, t, args):
+    def kinetic_energy(self, q: Vector, qd: Vector, t: RealScalarLike, args: Args) -> Scalar:
         x, v = _velocity(self.pose, q, qd, t, args)
         if x.shape != (3,):
             raise ValueError(
@@ -142,23 +153,34 @@ class RigidBody2D(eqx.Module):
         inertia = parameter_value(self.inertia, args, "inertia")
         return 0.5 * m * (v[0] ** 2 + v[1] ** 2) + 0.5 * inertia * v[2] ** 2
 
-    def height(self, q, t, args):
+    def height(self, q: Coordinates, t: RealScalarLike, args: Args) -> Scalar:
         """``m y_c``: the body's mass times the height of its centre of mass."""
         x = jnp.asarray(self.pose(q, t=t, args=args))
         return parameter_value(self.mass, args, "mass") * x[1]
 
-    def angular_velocity(self, q, qd, t=0.0, args=None):
+    def angular_velocity(
+        self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+    ) -> Scalar:
         """``φ̇`` (a scalar: the angular velocity about the out-of-plane axis)."""
         return _velocity(self.pose, jnp.asarray(q), jnp.asarray(qd), t, args)[1][2]
 
-    def point_position(self, q, point, t=0.0, args=None):
+    def point_position(
+        self, q: Coordinates, point: Float[ArrayLike, "2"], t: RealScalarLike = 0.0, args: Args = None
+    ) -> Float[Array, "2"]:
         """World position ``x_c + R(φ) r`` of the body point with body coordinates ``r`` (2,)."""
         x = jnp.asarray(self.pose(q, t=t, args=args))
         r = jnp.asarray(point, x.dtype)
         c, s = jnp.cos(x[2]), jnp.sin(x[2])
         return x[:2] + jnp.stack([c * r[0] - s * r[1], s * r[0] + c * r[1]])
 
-    def point_velocity(self, q, qd, point, t=0.0, args=None):
+    def point_velocity(
+        self,
+        q: Coordinates,
+        qd: Velocities,
+        point: Float[ArrayLike, "2"],
+        t: RealScalarLike = 0.0,
+        args: Args = None,
+    ) -> Float[Array, "2"]:
         """``ẋ_c + φ̇ ẑ × (R r)``: velocity of the body point with body coordinates ``r``."""
         q, qd = jnp.asarray(q), jnp.asarray(qd)
         return _velocity(lambda x, t, args: self.point_position(x, point, t, args), q, qd, t, args)[1]
@@ -199,10 +221,10 @@ class RigidBody3D(eqx.Module):
     """
 
     pose: UserFunction
-    mass: Any
-    inertia: Any
+    mass: Parameter
+    inertia: Parameter  # principal moments (3,) or the tensor (3, 3), or a function of args
 
-    def __init__(self, pose: Callable, mass, inertia):
+    def __init__(self, pose: Callable, mass: Parameter, inertia: Parameter):
         self.pose = wrap_configuration_function(pose, "rigid body pose function")
         self.mass = mass
         self.inertia = inertia
@@ -224,56 +246,87 @@ class RigidBody3D(eqx.Module):
         dtype = jnp.result_type(x.dtype, rotation.dtype, float)
         return x.astype(dtype), rotation.astype(dtype)
 
-    def pose_and_rates(self, q, qd, t=0.0, args=None):
+    def pose_and_rates(
+        self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+    ) -> tuple[tuple[Float[Array, "3"], Float[Array, "3 3"]], tuple[Float[Array, "3"], Float[Array, "3 3"]]]:
         """``((x_c, R), (ẋ_c, Ṙ))``: one ``jax.jvp`` of the pose along ``(q̇, 1)``."""
         q, qd = jnp.asarray(q), jnp.asarray(qd)
         t = jnp.asarray(t, dtype=q.dtype)
         return jax.jvp(lambda x, s: self._pose(x, s, args), (q, t), (qd, jnp.ones_like(t)))
 
-    def position(self, q, t=0.0, args=None):
+    def position(
+        self, q: Coordinates, t: RealScalarLike = 0.0, args: Args = None
+    ) -> tuple[Float[Array, "3"], Float[Array, "3 3"]]:
         """``(x_c, R)``: centre of mass and rotation matrix."""
         return self._pose(jnp.asarray(q), t, args)
 
-    def angular_velocity(self, q, qd, t=0.0, args=None, *, frame: str = "body"):
+    def angular_velocity(
+        self,
+        q: Coordinates,
+        qd: Velocities,
+        t: RealScalarLike = 0.0,
+        args: Args = None,
+        *,
+        frame: str = "body",
+    ) -> Float[Array, "3"]:
         """``ω`` with ``[ω]ₓ = RᵀṘ`` (``frame="body"``) or ``Ṙ Rᵀ`` (``frame="world"``)."""
         if frame not in ("body", "world"):
             raise ValueError(f"frame must be 'body' or 'world'; got {frame!r}.")
         (_, rotation), (_, rate) = self.pose_and_rates(q, qd, t, args)
         return unskew(rotation.T @ rate) if frame == "body" else unskew(rate @ rotation.T)
 
-    def point_position(self, q, point, t=0.0, args=None):
+    def point_position(
+        self, q: Coordinates, point: Float[ArrayLike, "3"], t: RealScalarLike = 0.0, args: Args = None
+    ) -> Float[Array, "3"]:
         """World position ``x_c + R r`` of the body point with body coordinates ``r`` (3,)."""
         x, rotation = self._pose(jnp.asarray(q), t, args)
         return x + rotation @ jnp.asarray(point, x.dtype)
 
-    def point_velocity(self, q, qd, point, t=0.0, args=None):
+    def point_velocity(
+        self,
+        q: Coordinates,
+        qd: Velocities,
+        point: Float[ArrayLike, "3"],
+        t: RealScalarLike = 0.0,
+        args: Args = None,
+    ) -> Float[Array, "3"]:
         """``ẋ_c + Ṙ r = v + ω × (R r)`` (world axes): velocity of the body point ``r``."""
         (_, _), (v, rate) = self.pose_and_rates(q, qd, t, args)
         return v + rate @ jnp.asarray(point, v.dtype)
 
     # ----------------------------------------------------------------- dynamics
-    def inertia_tensor(self, args=None):
+    def inertia_tensor(self, args: Args = None) -> Float[Array, "3 3"]:
         """The inertia tensor ``I`` (3, 3) in body axes about the centre of mass."""
         return _inertia_tensor(parameter_value(self.inertia, args, "inertia"))
 
-    def kinetic_energy(self, q, qd, t, args):
+    def kinetic_energy(self, q: Coordinates, qd: Velocities, t: RealScalarLike, args: Args) -> Scalar:
         (_, _), (v, rate) = self.pose_and_rates(q, qd, t, args)
         m = parameter_value(self.mass, args, "mass")
         inertia = self.inertia_tensor(args)
         second_moment = 0.5 * jnp.trace(inertia) * jnp.eye(3, dtype=inertia.dtype) - inertia
         return 0.5 * m * (v @ v) + 0.5 * jnp.sum((rate @ second_moment) * rate)
 
-    def height(self, q, t, args):
+    def height(self, q: Coordinates, t: RealScalarLike, args: Args) -> Scalar:
         """``m z_c``: the body's mass times the height of its centre of mass."""
         x, _ = self._pose(q, t, args)
         return parameter_value(self.mass, args, "mass") * x[2]
 
-    def momentum(self, q, qd, t=0.0, args=None):
+    def momentum(
+        self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+    ) -> Float[Array, "3"]:
         """Linear momentum ``m ẋ_c`` (world axes)."""
         (_, _), (v, _) = self.pose_and_rates(q, qd, t, args)
         return parameter_value(self.mass, args, "mass") * v
 
-    def angular_momentum(self, q, qd, t=0.0, args=None, *, about=None):
+    def angular_momentum(
+        self,
+        q: Coordinates,
+        qd: Velocities,
+        t: RealScalarLike = 0.0,
+        args: Args = None,
+        *,
+        about: Float[ArrayLike, "3"] | None = None,
+    ) -> Float[Array, "3"]:
         """Angular momentum in world axes, ``R I ω_body`` about the centre of mass, plus
         ``(x_c − a) × m ẋ_c`` about a fixed point ``a`` if ``about`` is given."""
         (x, rotation), (v, rate) = self.pose_and_rates(q, qd, t, args)
@@ -296,7 +349,10 @@ def _check_masses(masses, n_points):
 
 
 def kinetic_energy_from_positions(
-    positions: Callable | None, masses=1.0, *, bodies: Sequence[RigidBody2D | RigidBody3D] = ()
+    positions: Callable | None,
+    masses: Parameter = 1.0,
+    *,
+    bodies: Sequence[RigidBody2D | RigidBody3D] = (),
 ) -> Callable:
     r"""``T(q, q̇, t, args) = ½ Σ_k m_k |ẋ_k|² + Σ_b T_b`` for point masses and rigid bodies.
 
@@ -328,10 +384,10 @@ def kinetic_energy_from_positions(
 
 def lagrangian_from_positions(
     positions: Callable | None,
-    masses=1.0,
+    masses: Parameter = 1.0,
     potential: Callable | None = None,
     *,
-    gravity=None,
+    gravity: Parameter | None = None,
     bodies: Sequence[RigidBody2D | RigidBody3D] = (),
 ) -> Callable:
     r"""Build ``L(q, q̇, t, args) = T − V`` from where the mass is.

@@ -23,21 +23,26 @@ array may be given instead of a function::
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Callable, Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import ArrayLike
 
 from ._conventions import UserFunction, wrap_configuration_function, wrap_state_function
+from ._custom_types import Args, RealScalarLike, Vector
 from .coordinates import RigidBody2D, RigidBody3D
 
 __all__ = ["Force", "Torque", "generalized_forces", "point_map"]
 
 _BODIES = (RigidBody2D, RigidBody3D)
 
+#: A body point ``(body, r)`` (``r`` its body coordinates) or a position map ``x(q, [t], [args])``.
+PointLike = tuple[RigidBody2D | RigidBody3D, ArrayLike] | Callable
 
-def point_map(point) -> UserFunction:
+
+def point_map(point: PointLike) -> UserFunction:
     """A point as a position map ``x(q, [t], [args]) -> (d,)``.
 
     ``point`` is a ``(body, r)`` pair (a body point with body coordinates ``r``, on a
@@ -76,11 +81,11 @@ class Force(eqx.Module):
     point: UserFunction
     force: UserFunction
 
-    def __init__(self, point, force):
+    def __init__(self, point: PointLike, force: Callable | ArrayLike):
         self.point = point_map(point)
         self.force = _load_function(force, "force")
 
-    def generalized(self, q, qd, t, args):
+    def generalized(self, q: Vector, qd: Vector, t: RealScalarLike, args: Args) -> Vector:
         """``(∂ẋ_p/∂q̇)ᵀ F``."""
         load = jnp.asarray(self.force(q, qd, t=t, args=args))
 
@@ -100,34 +105,37 @@ class Torque(eqx.Module):
     """A torque ``τ`` (world components, (3,); a scalar for a planar body) on ``body``.
     ``torque``: ``τ(q, qd, [t], [args])`` or a constant."""
 
-    body: Any
+    body: RigidBody2D | RigidBody3D
     torque: UserFunction
 
-    def __init__(self, body, torque):
+    def __init__(self, body: RigidBody2D | RigidBody3D, torque: Callable | ArrayLike):
         if not isinstance(body, _BODIES):
             raise TypeError(f"A torque acts on a RigidBody3D or RigidBody2D; got {type(body).__name__}.")
         self.body = body
         self.torque = _load_function(torque, "torque")
 
-    def generalized(self, q, qd, t, args):
+    def generalized(self, q: Vector, qd: Vector, t: RealScalarLike, args: Args) -> Vector:
         """``(∂ω/∂q̇)ᵀ τ`` with ``ω`` the world-axes angular velocity of the body."""
         load = jnp.asarray(self.torque(q, qd, t=t, args=args))
         frozen = jnp.asarray(t, q.dtype)
 
-        if isinstance(self.body, RigidBody3D):
+        body = self.body
+        if isinstance(body, RigidBody3D):
 
-            def velocity(v):
-                (_, rotation), (_, rate) = jax.jvp(lambda x: self.body.position(x, frozen, args), (q,), (v,))
+            def spatial_velocity(v):
+                (_, rotation), (_, rate) = jax.jvp(lambda x: body.position(x, frozen, args), (q,), (v,))
                 return _world_rate(rotation, rate)
 
+            velocity = spatial_velocity
             shape = (3,)
         else:
 
-            def velocity(v):
+            def planar_velocity(v):
                 return jax.jvp(lambda x: jnp.asarray(self.body.pose(x, t=frozen, args=args)), (q,), (v,))[1][
                     2
                 ]
 
+            velocity = planar_velocity
             shape = ()
         if load.shape != shape:
             raise ValueError(
@@ -142,7 +150,7 @@ def _world_rate(rotation, rate):
     return 0.5 * jnp.stack([w[2, 1] - w[1, 2], w[0, 2] - w[2, 0], w[1, 0] - w[0, 1]])
 
 
-def generalized_forces(*loads: Force | Torque) -> Callable:
+def generalized_forces(*loads: Force | Torque | Sequence[Force | Torque]) -> Callable:
     r"""``Q(q, qd, t, args) = Σ (∂ẋ_p/∂q̇)ᵀ F_p + Σ (∂ω/∂q̇)ᵀ τ``: pass it as ``System(forces=...)``.
 
     Each load is a :class:`Force` or a :class:`Torque` (or a sequence of them).

@@ -23,13 +23,15 @@ Conventions (used throughout jaxlag):
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, cast
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Float
 
 from ._conventions import wrap_configuration_function
+from ._custom_types import Args, Coordinates, RealScalarLike, Velocities
 
 __all__ = [
     "angular_velocity",
@@ -52,7 +54,7 @@ def _float(x):
     return x
 
 
-def skew(vector):
+def skew(vector: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
     """``[v]ₓ``, the matrix with ``[v]ₓ r = v × r``."""
     v = _float(vector)
     if v.shape != (3,):
@@ -67,7 +69,7 @@ def skew(vector):
     )
 
 
-def unskew(matrix):
+def unskew(matrix: Float[ArrayLike, "3 3"]) -> Float[Array, "3"]:
     """The vector ``v`` of the skew part of ``W``: ``½(W − Wᵀ) = [v]ₓ`` (inverse of :func:`skew`)."""
     w = _float(matrix)
     if w.shape != (3, 3):
@@ -75,7 +77,7 @@ def unskew(matrix):
     return 0.5 * jnp.stack([w[2, 1] - w[1, 2], w[0, 2] - w[2, 0], w[1, 0] - w[0, 1]])
 
 
-def axis_rotation(axis: str, angle):
+def axis_rotation(axis: str, angle: RealScalarLike) -> Float[Array, "3 3"]:
     """Rotation by ``angle`` about the coordinate axis ``"x"``, ``"y"`` or ``"z"``:
     ``R = I + sin a K + (1 − cos a) K²`` with the constant generator ``K = [e]ₓ`` (few operations,
     which keeps the traced graphs of long chains of rotations small)."""
@@ -89,10 +91,13 @@ def axis_rotation(axis: str, angle):
     j, k = (i + 1) % 3, (i + 2) % 3
     generator[k, j], generator[j, k] = 1.0, -1.0
     square = generator @ generator
-    return (np.eye(3) + jnp.sin(angle) * generator + (1.0 - jnp.cos(angle)) * square).astype(angle.dtype)
+    rotation = np.eye(3) + jnp.sin(angle) * generator + (1.0 - jnp.cos(angle)) * square
+    return cast(Array, rotation).astype(angle.dtype)  # NumPy defers to the JAX array: an Array
 
 
-def euler_matrix(angles, sequence: str = "zxz", *, extrinsic: bool = False):
+def euler_matrix(
+    angles: Float[ArrayLike, "3"], sequence: str = "zxz", *, extrinsic: bool = False
+) -> Float[Array, "3 3"]:
     """Rotation matrix (body → world) from three Euler angles.
 
     ``sequence``: three letters from ``xyz``, neighbours different (``"zxz"``, ``"zyx"``, ...).
@@ -121,7 +126,7 @@ def euler_matrix(angles, sequence: str = "zxz", *, extrinsic: bool = False):
     return factors[0] @ factors[1] @ factors[2]
 
 
-def quaternion_matrix(quaternion):
+def quaternion_matrix(quaternion: Float[ArrayLike, "4"]) -> Float[Array, "3 3"]:
     r"""``R = (w² − v·v) I + 2 v vᵀ + 2 w [v]ₓ`` for ``q = (w, v)``, scalar first.
 
     The rotation for a unit quaternion. Deliberately not normalized: for ``q = s u`` (``u``
@@ -137,7 +142,7 @@ def quaternion_matrix(quaternion):
     return (w * w - v @ v) * eye + 2.0 * jnp.outer(v, v) + 2.0 * w * skew(v)
 
 
-def quaternion_from_matrix(matrix):
+def quaternion_from_matrix(matrix: Float[ArrayLike, "3 3"]) -> Float[Array, "4"]:
     """The unit quaternion ``(w, x, y, z)`` of a rotation matrix (Shepperd's method: the
     best-conditioned of the four formulas, chosen without branching, so ``jit`` and ``grad``
     work). ``q`` and ``−q`` are the same rotation; the one returned has its largest component
@@ -160,7 +165,7 @@ def quaternion_from_matrix(matrix):
     return candidates[best] * (0.5 / jnp.sqrt(pivot))
 
 
-def axis_angle_matrix(axis, angle):
+def axis_angle_matrix(axis: Float[ArrayLike, "3"], angle: RealScalarLike) -> Float[Array, "3 3"]:
     r"""Rodrigues' formula: ``R = I + sin a [n]ₓ + (1 − cos a) [n]ₓ²`` about the unit vector
     ``n = axis/|axis|``."""
     axis = _float(axis)
@@ -180,7 +185,15 @@ def _orientation_rate(orientation, q, qd, t, args):
     return jax.jvp(lambda x, s: jnp.asarray(orientation(x, t=s, args=args)), (q, t), (qd, jnp.ones_like(t)))
 
 
-def angular_velocity(orientation: Callable, q, qd, t=0.0, args=None, *, frame: str = "body"):
+def angular_velocity(
+    orientation: Callable,
+    q: Coordinates,
+    qd: Velocities,
+    t: RealScalarLike = 0.0,
+    args: Args = None,
+    *,
+    frame: str = "body",
+) -> Float[Array, "3"]:
     """Angular velocity of the frame ``R(q, [t], [args])`` (body → world), in body or world axes.
 
     ``frame="body"``: ``ω = vee(RᵀṘ)``; ``frame="world"``: ``ω = vee(Ṙ Rᵀ) = R ω_body``.

@@ -12,10 +12,10 @@ caveat of ``vmap``-ed adaptive solvers: the batched solver loop runs until the *
 has finished (finished members are masked), so a batch costs ``B ×`` the largest step count in
 it. Group members of similar stiffness, or use a constant step.
 
-With ``method="ensemble"`` the batch is instead an array axis of one batched Runge–Kutta loop
-(:mod:`jaxlag.ensemble`): no per-member solver loop, each member with its own step size when
-adaptive; ``method="auto"`` (the default) uses it on accelerators for constant steps and keeps
-``vmap`` everywhere else (always on CPU).
+With ``method=jl.Ensemble()`` the batch is instead an array axis of one batched Runge–Kutta
+loop (:mod:`jaxlag.ensemble`): no per-member solver loop, each member with its own step size when
+adaptive; ``method=None`` (the default) uses it on accelerators for constant steps and keeps
+``jl.Vmap()`` everywhere else (always on CPU).
 
 Sharding uses JAX's own machinery. With ``sharding="auto"`` the batch axis is split over every
 device of ``jax.devices()`` (a 1-D :class:`jax.sharding.Mesh` named ``"batch"``): batched inputs
@@ -37,23 +37,33 @@ device of every host.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
-from typing import Any
+from collections.abc import Sequence
+from typing import cast
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jaxtyping import ArrayLike, Float, PyTree
 
-from .. import _checks as checks
+from .. import _checks as checking
 from .. import _compile as compilation
 from .. import _errors as failures
 from .._misc import is_concrete
+from .._adjoint import ForwardSensitivities
+from .._checks import Checks
 from .._conventions import as_array_leaves, as_float_state, as_jax_array
+from .._custom_types import Args, RealScalarLike
+from .._events import Event, Events, as_events
 from .ensemble_entry import ensemble_by_default as _ensemble_by_default
 from .ensemble_entry import run_ensemble
-from .._simulate import _save_times_message, simulate
+from .methods import AbstractBatchMethod, Ensemble, Vmap
+from .._simulate import _save_times_message, as_projection, simulate
+from .._stabilization import Baumgarte, Projection
 from .._system import System
 from .._trajectory import Trajectory
 
@@ -107,7 +117,7 @@ def _spec_axes(sharding: NamedSharding) -> tuple:
     return (first,) if isinstance(first, str) else tuple(first)
 
 
-def batch_sharding(sharding="auto") -> NamedSharding:
+def batch_sharding(sharding: str | Mesh | NamedSharding = "auto") -> NamedSharding:
     """The ``NamedSharding`` that ``simulate_batch`` uses for the leading (batch) axis.
 
     ``"auto"``: a 1-D mesh ``("batch",)`` over ``jax.devices()`` (every local device in one
@@ -163,7 +173,7 @@ def _run_batch(
         if initial_check is None:
             return traj, None
         t0, tolerance = initial_check
-        return traj, checks.initial_state_diagnostics(system, q, qd, t0, member_args, tolerance)
+        return traj, checking.initial_state_diagnostics(system, q, qd, t0, member_args, tolerance)
 
     out, diagnostics = jax.vmap(one, in_axes=(q_axis, qd_axis, 0))(q0, qd0, batched_args)
     if out_sharding is not None:
@@ -178,16 +188,29 @@ def _run_batch(
 
 def simulate_batch(
     system: System,
-    q0,
-    qd0,
-    ts=None,
+    q0: Float[ArrayLike, "*batch n"],
+    qd0: Float[ArrayLike, "*batch n"],
+    ts: Float[ArrayLike, "*batch times"] | None = None,
     *,
-    args: Any = None,
-    args_axes: Any = None,
-    sharding: Any = None,
-    method: str = "auto",
-    backend: str = "auto",
-    **simulate_kwargs: Any,
+    args: Args = None,
+    args_axes: PyTree[int | None] = None,
+    sharding: str | Mesh | NamedSharding | None = None,
+    method: AbstractBatchMethod | None = None,
+    t0: RealScalarLike | None = None,
+    t1: RealScalarLike | None = None,
+    solver: diffrax.AbstractSolver | None = None,
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    dt0: RealScalarLike | None = None,
+    saveat: diffrax.SaveAt | None = None,
+    max_steps: int | None = 2**16,
+    adjoint: diffrax.AbstractAdjoint | ForwardSensitivities | None = None,
+    event: diffrax.Event | None = None,
+    throw: bool = True,
+    progress_meter: diffrax.AbstractProgressMeter | None = None,
+    baumgarte: Baumgarte | None = None,
+    projection: Projection | None = Projection(),
+    checks: Checks = Checks(),
+    events: Events | Event | Sequence[Event] = Events(),
 ) -> Trajectory:
     """Simulate a batch of initial states and/or parameters in one compiled, vmapped call.
 
@@ -195,7 +218,7 @@ def simulate_batch(
 
     - ``system``: a :class:`~jaxlag.System` (shared by the whole batch).
     - ``q0``, ``qd0``: ``(B, n)`` per-member initial states, or ``(n,)`` shared by all members.
-    - ``ts``: save times ``(T,)``, shared (or ``t0``/``t1``/``saveat`` in ``simulate_kwargs``).
+    - ``ts``: save times ``(T,)``, shared (or ``t0``/``t1``/``saveat``).
     - ``args``: parameters, any pytree.
     - ``args_axes``: which ``args`` leaves carry the batch axis, in the style of ``jax.vmap``'s
       ``in_axes``: ``None`` (default: all shared), ``0`` (every leaf has a leading axis of
@@ -205,19 +228,19 @@ def simulate_batch(
       ``jax.devices()``), a :class:`jax.sharding.Mesh` (split over all its axes) or a
       :class:`jax.sharding.NamedSharding` whose spec's first entry splits the batch axis. The
       batch is padded to a multiple of the number of shards and un-padded on return.
-    - ``method``: ``"vmap"`` (``jax.vmap`` of :func:`~jaxlag.simulate`: every option, events,
-      unilateral constraints), ``"ensemble"`` (one batched Runge–Kutta loop for the whole batch,
-      :mod:`jaxlag.ensemble`: explicit tableau solvers, constant or PID steps; ``ts`` may then
-      also be per member, ``(B, T)``) or ``"auto"`` (default): ``"ensemble"`` on an accelerator
-      (GPU/TPU) for constant steps whose step divides the save intervals (the result equals the
-      vmap one to rounding), ``"vmap"`` otherwise, in particular always on CPU.
-    - ``backend`` (``method="ensemble"`` only): ``"xla"`` (the loop as XLA ops), ``"pallas"``
-      (one fused Pallas kernel, constant steps; falls back to ``"xla"`` with a warning if the
-      equations do not lower), ``"pallas-interpret"`` (the kernel in Pallas's interpreter, for
-      testing on CPU), or ``"auto"`` (``"xla"``; see the README for why).
-    - ``simulate_kwargs``: every keyword of :func:`~jaxlag.simulate` (``solver``,
-      ``stepsize_controller``, ``dt0``, ``saveat``, ``max_steps``, ``adjoint``, ``projection``,
-      ``baumgarte``, ``events``, ``max_segments``, ...), applied to every member.
+    - ``method``: :class:`~jaxlag.Vmap` (``jl.Vmap()``: ``jax.vmap`` of
+      :func:`~jaxlag.simulate`: every option, events, unilateral constraints),
+      :class:`~jaxlag.Ensemble` (``jl.Ensemble(backend="auto")``: one batched Runge–Kutta loop
+      for the whole batch, :mod:`jaxlag.ensemble`: explicit tableau solvers, constant or PID
+      steps; ``ts`` may then also be per member, ``(B, T)``; ``backend`` ``"xla"``,
+      ``"pallas"``, ``"pallas-interpret"`` or ``"auto"``) or ``None`` (default): ``jl.Ensemble()``
+      on an accelerator (GPU/TPU) for constant steps whose step divides the save intervals (the
+      result equals the vmap one to rounding), ``jl.Vmap()`` otherwise, in particular always on
+      CPU.
+    - ``t0``, ``t1``, ``solver``, ``stepsize_controller``, ``dt0``, ``saveat``, ``max_steps``,
+      ``adjoint``, ``event``, ``throw``, ``progress_meter``, ``baumgarte``, ``projection``,
+      ``checks`` (a :class:`~jaxlag.Checks`) and ``events`` (a :class:`~jaxlag.Events`): the
+      options of :func:`~jaxlag.simulate`, with its defaults, applied to every member.
 
     Returns a :class:`~jaxlag.Trajectory` whose leaves all have a leading batch axis ``B``
     (``q``: ``(B, T, n)``), exactly what ``jax.vmap`` of ``simulate`` gives; its derived
@@ -253,7 +276,7 @@ def simulate_batch(
                 f"args{jax.tree_util.keystr(path)} is marked batched by args_axes but is a scalar."
             )
         sizes[f"args{jax.tree_util.keystr(path)}"] = shape[0]
-    if ts is not None and jnp.ndim(ts) == 2:  # per-member save times (method="ensemble")
+    if ts is not None and jnp.ndim(ts) == 2:  # per-member save times (method=jl.Ensemble())
         sizes["ts"] = jnp.shape(ts)[0]
     if not sizes:
         raise ValueError(
@@ -265,14 +288,33 @@ def simulate_batch(
     if size == 0:
         raise ValueError("The batch is empty (B = 0).")
 
-    if method not in ("auto", "vmap", "ensemble"):
-        raise ValueError(f"method must be 'auto', 'vmap' or 'ensemble'; got {method!r}.")
-    if method == "auto":
-        method = "ensemble" if _ensemble_by_default(system, ts, simulate_kwargs) else "vmap"
+    if method is not None and not isinstance(method, AbstractBatchMethod):
+        raise TypeError(f"method must be jl.Vmap(), jl.Ensemble(...) or None; got {method!r}.")
+    if not isinstance(checks, Checks):
+        raise TypeError(f"checks must be a jl.Checks; got {type(checks).__name__}.")
+    options = dict(
+        t0=t0,
+        t1=t1,
+        solver=solver,
+        stepsize_controller=stepsize_controller,
+        dt0=dt0,
+        saveat=saveat,
+        max_steps=max_steps,
+        adjoint=adjoint,
+        event=event,
+        throw=throw,
+        progress_meter=progress_meter,
+        baumgarte=baumgarte,
+        projection=as_projection(projection, system),
+        checks=checks,
+        events=as_events(events),
+    )
+    if method is None:
+        method = Ensemble() if _ensemble_by_default(system, ts, options) else Vmap()
     if ts is not None:
         ts = as_jax_array(ts, q0.dtype)
-        if ts.ndim == 2 and method == "vmap":
-            raise ValueError(f"Per-member save times ts of shape {ts.shape} need method='ensemble'.")
+        if ts.ndim == 2 and isinstance(method, Vmap):
+            raise ValueError(f"Per-member save times ts of shape {ts.shape} need method=jl.Ensemble().")
 
     out_sharding, pad = None, 0
     if sharding is not None:
@@ -287,16 +329,25 @@ def simulate_batch(
         def place_shared(x):
             return jax.device_put(x, replicated) if isinstance(x, jax.Array) else x
 
-        q0 = place_batched(q0) if q0.ndim == 2 else place_shared(q0)
-        qd0 = place_batched(qd0) if qd0.ndim == 2 else place_shared(qd0)
+        q0 = cast(jax.Array, place_batched(q0) if q0.ndim == 2 else place_shared(q0))
+        qd0 = cast(jax.Array, place_batched(qd0) if qd0.ndim == 2 else place_shared(qd0))
         batched_args = jax.tree.map(place_batched, batched_args)
         shared_args = jax.tree.map(place_shared, shared_args)
         if ts is not None:
             ts = place_batched(ts) if ts.ndim == 2 else place_shared(ts)
 
-    if method == "ensemble":
+    if isinstance(method, Ensemble):
         out = run_ensemble(
-            system, q0, qd0, ts, batched_args, shared_args, size + pad, simulate_kwargs, out_sharding, backend
+            system,
+            q0,
+            qd0,
+            ts,
+            batched_args,
+            shared_args,
+            size + pad,
+            options,
+            out_sharding,
+            method.backend,
         )
         if pad:
             out = jax.tree.map(lambda x: x[:size] if isinstance(x, jax.Array) else x, out)
@@ -304,21 +355,17 @@ def simulate_batch(
 
     # Members fail on their own (traj.failure per member); the batch raises once, below, naming
     # the failed members, or not at all with throw=False.
-    throw = simulate_kwargs.pop("throw", True)
     concrete = is_concrete((q0, qd0, ts, batched_args, shared_args))
-    run_kwargs = {**simulate_kwargs, "throw": False}
     initial_check = None
-    if concrete and _checked_on_host(ts, simulate_kwargs):
+    if concrete and _checked_on_host(ts, options):
         text = _save_times_message(np.asarray(ts))
         if text is not None:
             raise ValueError(text)
-        run_kwargs.update(check_times=False)
-        if run_kwargs.get("check_initial_state", True):
-            tolerance = run_kwargs.get("constraint_tolerance")
-            if tolerance is None:
-                tolerance = checks.default_constraint_tolerance(q0.dtype)
-            initial_check = (np.asarray(ts)[0], float(tolerance))
-            run_kwargs.update(check_initial_state=False)
+        checks = dataclasses.replace(checks, times=False)
+        if checks.initial_state:
+            initial_check = (np.asarray(ts)[0], float(checks.tolerance(q0.dtype)))
+            checks = dataclasses.replace(checks, initial_state=False)
+    run_kwargs = {**options, "checks": checks, "throw": False}
     with failures.plain_errors() if concrete else contextlib.nullcontext():
         out, diagnostics = _run_batch(
             system,
@@ -340,7 +387,7 @@ def simulate_batch(
             lambda x: x[:size] if isinstance(x, jax.Array) else x, (out, diagnostics)
         )
     if initial_check is not None:
-        checks.raise_for_initial_states(system, diagnostics, args, initial_check[1])
+        checking.raise_for_initial_states(system, diagnostics, args, initial_check[1])
     if throw and out.failure is not None:
         if not is_concrete(out.failure):
             out = eqx.tree_at(lambda tr: tr.q, out, failures.error_if_failed(out.failure, out.q))
@@ -353,12 +400,12 @@ def simulate_batch(
     return out
 
 
-def _checked_on_host(ts, simulate_kwargs) -> bool:
+def _checked_on_host(ts, options: dict) -> bool:
     """Whether the batch's checks can run on the host: plain save times ``ts`` (no ``t0``,
     ``t1``, ``saveat`` or ``dt0`` of another sign) and one process (every row readable)."""
-    if ts is None or any(simulate_kwargs.get(k) is not None for k in ("t0", "t1", "saveat")):
+    if ts is None or any(options[k] is not None for k in ("t0", "t1", "saveat")):
         return False
-    dt0 = simulate_kwargs.get("dt0")
+    dt0 = options["dt0"]
     if dt0 is not None and not (is_concrete(dt0) and float(dt0) >= 0):
         return False
     return jax.process_count() == 1

@@ -1,6 +1,6 @@
 r"""One loop for a whole ensemble: batched explicit Runge–Kutta with the batch as an array axis.
 
-``simulate_batch(..., method="vmap")`` is ``jax.vmap`` of ``diffrax.diffeqsolve``: every member
+``simulate_batch(..., method=jl.Vmap())`` is ``jax.vmap`` of ``diffrax.diffeqsolve``: every member
 runs diffrax's solver loop, and ``vmap`` turns the loop into a batched ``while_loop`` whose body
 is the whole of diffrax's step machinery. On an accelerator each iteration launches dozens of small
 kernels. Here the state of all ``B`` members is one array pair ``q, q̇`` of shape ``(B, n)``
@@ -50,6 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 from diffrax._local_interpolation import ThirdOrderHermitePolynomialInterpolation
+from jaxtyping import PyTree
 
 from .._checks import validate_initial_state
 from .._mechanics.constant_mass import with_constant_mass
@@ -77,7 +78,7 @@ class RK4(diffrax.AbstractERK):
     tableau = _RK4_TABLEAU
     interpolation_cls = ThirdOrderHermitePolynomialInterpolation.from_k
 
-    def order(self, terms):
+    def order(self, terms: PyTree[diffrax.AbstractTerm]) -> int:
         del terms
         return 4
 
@@ -89,12 +90,12 @@ def tableau_of(solver) -> diffrax.ButcherTableau:
         raise TypeError(
             f"The ensemble integrator needs an explicit Runge–Kutta solver with a Butcher tableau "
             f"(diffrax.Tsit5(), diffrax.Dopri5(), jl.RK4(), ...); {type(solver).__name__} has none. "
-            "Use simulate_batch(..., method='vmap') for any other diffrax solver."
+            "Use simulate_batch(..., method=jl.Vmap()) for any other diffrax solver."
         )
     if tableau.a_diagonal is not None and np.any(np.asarray(tableau.a_diagonal) != 0):
         raise TypeError(
             f"{type(solver).__name__} is implicit (its tableau has a diagonal); the ensemble "
-            "integrator is explicit only. Use simulate_batch(..., method='vmap')."
+            "integrator is explicit only. Use simulate_batch(..., method=jl.Vmap())."
         )
     return tableau
 
@@ -170,7 +171,7 @@ def make_settings(solver, stepsize_controller, max_steps, adjoint, throw) -> Ens
             "adjoint must be diffrax.RecursiveCheckpointAdjoint() (reverse mode, the default) or "
             f"diffrax.ForwardMode() (forward mode) for the ensemble integrator; got {adjoint!r}."
         )
-    common = dict(
+    common: dict[str, Any] = dict(
         tableau=Tableau.from_diffrax(tableau), max_steps=int(max_steps), loop_kind=kind, throw=bool(throw)
     )
     if isinstance(stepsize_controller, diffrax.ConstantStepSize):
@@ -179,7 +180,7 @@ def make_settings(solver, stepsize_controller, max_steps, adjoint, throw) -> Ens
         raise TypeError(
             "stepsize_controller must be diffrax.ConstantStepSize() or diffrax.PIDController(...) "
             f"for the ensemble integrator; got {type(stepsize_controller).__name__}. Use "
-            "simulate_batch(..., method='vmap')."
+            "simulate_batch(..., method=jl.Vmap())."
         )
     controller = stepsize_controller
     if not np.any(np.asarray(tableau.b_error) != 0):
@@ -191,12 +192,12 @@ def make_settings(solver, stepsize_controller, max_steps, adjoint, throw) -> Ens
     if controller.norm is not optx.rms_norm:
         raise ValueError(
             "The ensemble integrator uses diffrax's default RMS error norm; a custom "
-            "PIDController.norm is not supported (use method='vmap')."
+            "PIDController.norm is not supported (use method=jl.Vmap())."
         )
     if not controller.force_dtmin:
         raise ValueError(
             "PIDController(force_dtmin=False) is not supported by the ensemble "
-            "integrator (use method='vmap')."
+            "integrator (use method=jl.Vmap())."
         )
     error_order = controller.error_order
     if error_order is None:
@@ -253,11 +254,12 @@ class BatchedField(eqx.Module):
         return jax.vmap(one)(t, y[0], y[1], self.member_args, self.constant_mass)
 
     def project(self, t, y):
-        if self.projection is None:
+        projection = self.projection
+        if projection is None:
             return y
 
         def one(ti, qi, qdi, member, constant_mass):
-            return self.projection(self._system(constant_mass), qi, qdi, ti, self._args(member))
+            return projection(self._system(constant_mass), qi, qdi, ti, self._args(member))
 
         return jax.vmap(one)(t, y[0], y[1], self.member_args, self.constant_mass)
 
@@ -409,7 +411,7 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
     beta3 = settings.dcoeff / p
     ones = jnp.ones((batch,), dtype)
     zero = jnp.zeros((batch,), jnp.int32)
-    init = dict(
+    init: dict[str, Any] = dict(
         t=t0,
         dt=dt,
         y=y0,
@@ -479,7 +481,7 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
         # that index, and an out-of-range gather fills with NaN.)
         index = jnp.where(save, c["k"], num_saves)
         saves = tuple(s.at[members, index].set(v) for s, v in zip(c["saves"], y1))
-        out = dict(
+        out: dict[str, Any] = dict(
             t=jnp.where(accept, t1, t),
             dt=jnp.where(running, dt_next, c["dt"]),
             y=select(accept, y1, y),
@@ -541,6 +543,8 @@ def integrate_ensemble(field, settings, ts, y0, dt0, grid=None):
     """
     if settings.adaptive:
         return _adaptive_loop(field, settings, ts, y0, dt0)
+    if grid is None:
+        raise ValueError("integrate_ensemble needs grid=(m, inner, uniform) for constant steps.")
     steps_per_interval, inner, uniform = grid[:3]
     return constant_loop(field, settings, ts, y0, steps_per_interval, inner, uniform)
 
@@ -552,7 +556,7 @@ def check_finished(done, q, settings):
     return eqx.error_if(
         q,
         ~jnp.all(done),
-        f"simulate_batch(method='ensemble'): some members did not reach their last save time "
+        f"simulate_batch(method=jl.Ensemble()): some members did not reach their last save time "
         f"within max_steps={settings.max_steps} loop iterations; increase max_steps (or loosen "
         "rtol/atol). Pass throw=False to get the partial result with traj.result per member.",
     )

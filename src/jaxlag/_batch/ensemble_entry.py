@@ -1,7 +1,8 @@
-"""``simulate_batch(..., method="ensemble")``: options, checks and the compiled call.
+"""``simulate_batch(..., method=jl.Ensemble())``: options, checks and the compiled call.
 
-Turns the keywords of :func:`~jaxlag.simulate` into :class:`~jaxlag.ensemble.EnsembleSettings`,
-rejects what the ensemble loop does not do (with a pointer to ``method="vmap"``), computes the
+Turns the options of :func:`~jaxlag.simulate` (as :func:`~jaxlag.simulate_batch` received them)
+into :class:`~jaxlag.ensemble.EnsembleSettings`, rejects what the ensemble loop does not do (with
+a pointer to ``method=jl.Vmap()``), computes the
 constant-step grid on the host and runs :func:`~jaxlag.ensemble.integrate_ensemble` (or the Pallas
 kernel) under one ``jax.jit``.
 """
@@ -26,36 +27,18 @@ from .ensemble import (
     integrate_ensemble,
     make_settings,
 )
-from .._stabilization import Projection
+from .._events import as_events
 from .pallas import integrate_pallas
 from .._trajectory import Trajectory
 
-_VMAP = "Use simulate_batch(..., method='vmap') (jax.vmap of jl.simulate), which supports it."
-_DEFAULTS = dict(
-    t0=None,
-    t1=None,
-    solver=None,
-    stepsize_controller=None,
-    dt0=None,
-    saveat=None,
-    max_steps=2**16,
-    adjoint=None,
-    event=None,
-    throw=True,
-    progress_meter=None,
-    baumgarte=None,
-    projection="auto",
-    check_initial_state=True,
-    constraint_tolerance=1e-8,
-    events=(),
-)
+_VMAP = "Use simulate_batch(..., method=jl.Vmap()) (jax.vmap of jl.simulate), which supports it."
 
 
-def _options(system, kwargs) -> dict:
-    unknown = set(kwargs) - set(_DEFAULTS) - {"max_segments", "event_root_finder"}
-    if unknown:
-        raise TypeError(f"simulate_batch got unexpected keyword(s) {sorted(unknown)}.")
-    options = {**_DEFAULTS, **kwargs}
+def _options(options: dict) -> dict:
+    """The simulate options of :func:`~jaxlag.simulate_batch` (a dict by ``simulate``'s keyword
+    names: ``solver``, ``stepsize_controller``, ``checks``, ``events``, ...) with the ensemble
+    loop's default solver and controller filled in."""
+    options = dict(options)
     if options["solver"] is None:
         options["solver"] = diffrax.Tsit5()
     if options["stepsize_controller"] is None:
@@ -63,16 +46,15 @@ def _options(system, kwargs) -> dict:
     return options
 
 
-def unsupported(system, ts, kwargs) -> str | None:
-    """Why ``method="ensemble"`` cannot run these options, or ``None``."""
-    options = _options(system, kwargs)
+def unsupported(system, ts, options: dict) -> str | None:
+    """Why ``method=jl.Ensemble()`` cannot run these options, or ``None``."""
+    options = _options(options)
     if system.unilateral:
         return (
             "unilateral constraints switch per member at events; the ensemble integrator has "
             "no event handling. " + _VMAP
         )
-    events = options["events"]
-    if (isinstance(events, (tuple, list)) and len(events)) or not isinstance(events, (tuple, list)):
+    if as_events(options["events"]).conditions:
         return "jl.Event conditions are not supported by the ensemble integrator. " + _VMAP
     if options["event"] is not None:
         return "diffrax events are not supported by the ensemble integrator. " + _VMAP
@@ -126,17 +108,17 @@ def unsupported(system, ts, kwargs) -> str | None:
     return None
 
 
-def ensemble_by_default(system, ts, kwargs) -> bool:
-    """``method="auto"``: the ensemble loop only on an accelerator, for constant steps on a grid
+def ensemble_by_default(system, ts, options: dict) -> bool:
+    """``method=None``: the ensemble loop only on an accelerator, for constant steps on a grid
     that divides the save intervals (so that the result equals the vmap one to rounding)."""
     if jax.default_backend() == "cpu":
         return False
     try:
-        if unsupported(system, ts, kwargs) is not None:
+        if unsupported(system, ts, options) is not None:
             return False
     except Exception:  # noqa: BLE001 - auto never fails where vmap would run
         return False
-    options = _options(system, kwargs)
+    options = _options(options)
     if not isinstance(options["stepsize_controller"], diffrax.ConstantStepSize):
         return False
     times = np.atleast_2d(np.asarray(_save_times(ts, options), dtype=float))
@@ -258,10 +240,11 @@ def _kernel_lowers(call) -> Exception | None:
 
 
 def run_ensemble(
-    system, q0, qd0, ts, batched_args, shared_args, batch, kwargs, out_sharding, backend
+    system, q0, qd0, ts, batched_args, shared_args, batch, options: dict, out_sharding, backend
 ) -> Trajectory:
-    """``simulate_batch(..., method="ensemble")`` after the batch inputs have been prepared."""
-    options = _options(system, kwargs)
+    """``simulate_batch(..., method=jl.Ensemble(backend))`` after the batch inputs have been
+    prepared; ``options``: the simulate options, ``projection`` already checked."""
+    options = _options(options)
     settings = make_settings(
         options["solver"],
         options["stepsize_controller"],
@@ -269,9 +252,9 @@ def run_ensemble(
         options["adjoint"],
         options["throw"],
     )
-    reason = unsupported(system, ts, kwargs)
+    reason = unsupported(system, ts, options)
     if reason is not None:
-        raise ValueError("simulate_batch(method='ensemble'): " + reason)
+        raise ValueError("simulate_batch(method=jl.Ensemble()): " + reason)
     keep_first = ts is not None  # simulate saves at ts[0]; with t0/t1/saveat only what saveat asks
     times = _save_times(ts, options)
     if times is None:
@@ -289,15 +272,11 @@ def run_ensemble(
         q0 = jnp.broadcast_to(q0, (batch,) + q0.shape)
     if qd0.ndim == 1:
         qd0 = jnp.broadcast_to(qd0, (batch,) + qd0.shape)
-    projection = options["projection"]
-    if isinstance(projection, str):
-        if projection != "auto":
-            raise ValueError(f"projection must be a jl.Projection, None or 'auto'; got {projection!r}.")
-        projection = Projection() if system.is_constrained else None
-    if not system.is_constrained:
-        projection = None
+    projection = options["projection"] if system.is_constrained else None
     grid = None
     if not settings.adaptive:
+        if host is None:  # excluded by unsupported() above
+            raise ValueError("simulate_batch(method=jl.Ensemble()): constant steps need concrete save times.")
         m, inner = constant_grid(host, float(options["dt0"]))
         # The 4th entry: every member has the same save times (the lane-wise Pallas kernel).
         grid = (jnp.asarray(m, jnp.int32), inner, bool(np.all(m == inner)), bool(np.all(host == host[:1])))
@@ -306,13 +285,11 @@ def run_ensemble(
                 f"Constant steps of dt0={options['dt0']} need {int(m.sum(axis=1).max())} steps, more "
                 f"than max_steps={settings.max_steps}."
             )
-    if backend not in ("auto", "xla", "pallas", "pallas-interpret"):
-        raise ValueError(f"backend must be 'auto', 'xla', 'pallas' or 'pallas-interpret'; got {backend!r}.")
     if backend == "auto":
         backend = "xla"
     if backend.startswith("pallas") and settings.adaptive:
         raise ValueError(
-            "backend='pallas' integrates constant steps only "
+            "jl.Ensemble(backend='pallas') integrates constant steps only "
             "(diffrax.ConstantStepSize()); use backend='xla' for adaptive steps."
         )
     dt0 = options["dt0"]
@@ -329,8 +306,8 @@ def run_ensemble(
         grid,
         options["baumgarte"],
         projection,
-        bool(options["check_initial_state"]),
-        options["constraint_tolerance"],
+        bool(options["checks"].initial_state),
+        options["checks"].tolerance(q0.dtype),
         keep_first,
         out_sharding,
     )
@@ -339,7 +316,7 @@ def run_ensemble(
         if error is not None:
             message = str(error).splitlines()[0][:200] if str(error) else ""
             warnings.warn(
-                f"simulate_batch(method='ensemble', backend='pallas'): the kernel did not lower "
+                f"simulate_batch(method=jl.Ensemble(backend='pallas')): the kernel did not lower "
                 f"({type(error).__name__}: {message}); using the XLA loop.",
                 RuntimeWarning,
                 stacklevel=3,

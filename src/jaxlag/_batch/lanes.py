@@ -21,8 +21,10 @@ from __future__ import annotations
 
 import functools
 import operator
+from typing import Any
 
 import jax
+import jax.core
 import jax.extend.core as jcore
 import jax.numpy as jnp
 import numpy as np
@@ -168,7 +170,7 @@ def _triangular_solve(a, b, left_side, lower, transpose_a, unit_diagonal, **_):
 
 
 def _structural(name, params, operands):
-    x = operands[0] if operands else None
+    x: Any = operands[0] if operands else None  # None for operand-free primitives (iota)
     if name == "slice":
         strides = params["strides"] or (1,) * x.ndim
         return x[

@@ -1,6 +1,6 @@
 r"""The ensemble loop as one fused Pallas kernel (constant steps).
 
-``simulate_batch(..., method="ensemble", backend="pallas")``. The batch is cut into blocks of
+``simulate_batch(..., method=jl.Ensemble(backend="pallas"))``. The batch is cut into blocks of
 ``block`` members; one Pallas program per block (grid ``(⌈B/block⌉,)``) loads its members' state
 once, runs the **whole** constant-step integration (every save interval, every Runge–Kutta stage,
 the projection of constrained systems) in a ``lax.fori_loop`` inside the kernel, and writes only
@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jax.experimental import pallas as pl

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 from jax.extend import core as jex_core
 

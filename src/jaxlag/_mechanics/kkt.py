@@ -20,6 +20,8 @@ unique when the redundant constraints are consistent.
 
 from __future__ import annotations
 
+from typing import Any, Callable
+
 import jax.numpy as jnp
 
 from .constraints import constraint_rows
@@ -47,7 +49,7 @@ def solve_kkt(mass, force, rows, rhs, least_squares: bool = False, active=None, 
     ``b ↦ M⁻¹ b`` for vectors and matrices (e.g. :func:`jaxlag.linalg.spd_solver`'s result);
     ``active`` (m,) optionally switches constraints off (their multipliers are zero).
     """
-    solve_mass = mass if callable(mass) else spd_solver(mass, diagonal_mass)
+    solve_mass: Callable[[Any], Any] = mass if callable(mass) else spd_solver(mass, diagonal_mass)
     m = rows.shape[0]
     if m == 0:
         return solve_mass(force), jnp.zeros((0,), force.dtype)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from .linalg import spd_solver
 
@@ -91,7 +92,7 @@ def nonconservative_forces(system, q, qd, t, args):
     return total
 
 
-def mass_matrix(system, q, qd, t=0.0, args=None):
+def mass_matrix(system, q, qd, t: ArrayLike = 0.0, args=None):
     """``M = ∂²L/∂q̇²``, shape (n, n)."""
     if system.constant_mass is not None:
         return jnp.asarray(system.constant_mass.matrix, dtype=q.dtype)

@@ -9,6 +9,8 @@ LAPACK's Cholesky (``jax.scipy.linalg.cho_factor``/``cho_solve``). Both are diff
 
 from __future__ import annotations
 
+from typing import Any, Callable
+
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 
@@ -21,8 +23,8 @@ UNROLL_MAX = 8
 def _unrolled_cholesky(a):
     """Lower Cholesky factor (as nested lists of scalars) and reciprocal diagonal."""
     n = a.shape[0]
-    lower = [[None] * n for _ in range(n)]
-    inv_diag = [None] * n
+    lower: list[list[Any]] = [[None] * n for _ in range(n)]
+    inv_diag: list[Any] = [None] * n
     for j in range(n):
         s = a[j, j]
         for k in range(j):
@@ -41,13 +43,13 @@ def _unrolled_cholesky(a):
 def _unrolled_triangular_solves(factor, b):
     lower, inv_diag = factor
     n = len(inv_diag)
-    y = [None] * n
+    y: list[Any] = [None] * n
     for i in range(n):
         s = b[i]
         for k in range(i):
             s = s - lower[i][k] * y[k]
         y[i] = s * inv_diag[i]
-    x = [None] * n
+    x: list[Any] = [None] * n
     for i in reversed(range(n)):
         s = y[i]
         for k in range(i + 1, n):
@@ -65,25 +67,18 @@ def spd_solver(a, diagonal: bool = False):
     non-finite values; callers check definiteness where it can first go wrong.
     """
     n = a.shape[0]
+    solve_matrix: Callable[[Any], Any]
     if diagonal:
         inverse = 1.0 / jnp.diagonal(a)
-
-        def solve_matrix(rhs):
-            return inverse[:, None] * rhs
+        solve_matrix = lambda rhs: inverse[:, None] * rhs
     elif n == 0:
-
-        def solve_matrix(rhs):
-            return rhs
+        solve_matrix = lambda rhs: rhs
     elif n <= UNROLL_MAX:
         factor = _unrolled_cholesky(a)
-
-        def solve_matrix(rhs):
-            return _unrolled_triangular_solves(factor, rhs)
+        solve_matrix = lambda rhs: _unrolled_triangular_solves(factor, rhs)
     else:
         factor = jsl.cho_factor(a, lower=True)
-
-        def solve_matrix(rhs):
-            return jsl.cho_solve(factor, rhs)
+        solve_matrix = lambda rhs: jsl.cho_solve(factor, rhs)
 
     def solve(b):
         if b.ndim == 1:

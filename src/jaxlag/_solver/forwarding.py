@@ -17,6 +17,9 @@ from equinox import AbstractVar
 class ForwardingSolver(diffrax.AbstractSolver):
     """Forwards diffrax's solver interface to ``self.solver`` (see module)."""
 
+    # The properties below stand for diffrax's abstract fields and class variables, which equinox
+    # accepts and pyright cannot see: hence the line-level ignores.
+
     solver: AbstractVar[diffrax.AbstractSolver]
 
     @property
@@ -24,15 +27,15 @@ class ForwardingSolver(diffrax.AbstractSolver):
         return getattr(self.solver, "scan_kind", None)
 
     @property
-    def term_structure(self):
+    def term_structure(self):  # pyright: ignore[reportIncompatibleVariableOverride]
         return self.solver.term_structure
 
     @property
-    def interpolation_cls(self):  # pyright: ignore
+    def interpolation_cls(self):  # pyright: ignore[reportIncompatibleMethodOverride]
         return self.solver.interpolation_cls
 
     @property
-    def term_compatible_contr_kwargs(self):
+    def term_compatible_contr_kwargs(self):  # pyright: ignore[reportIncompatibleVariableOverride]
         return self.solver.term_compatible_contr_kwargs
 
     def order(self, terms):
@@ -58,16 +61,19 @@ class ForwardingAdaptiveController(diffrax.AbstractAdaptiveStepSizeController):
     """Base of jaxlag's adaptive step-size controller wrappers: the tolerances and norm are the
     wrapped ``self.controller``'s (diffrax reads them, e.g. for implicit solvers)."""
 
+    # pyright takes diffrax's abstract rtol/atol/norm for fields of the synthesized __init__ (they
+    # are properties here): subclasses are constructed from their controller alone, under ignores.
+
     controller: AbstractVar[diffrax.AbstractAdaptiveStepSizeController]
 
     @property
-    def rtol(self):
+    def rtol(self):  # pyright: ignore[reportIncompatibleVariableOverride]
         return self.controller.rtol
 
     @property
-    def atol(self):
+    def atol(self):  # pyright: ignore[reportIncompatibleVariableOverride]
         return self.controller.atol
 
     @property
-    def norm(self):  # pyright: ignore
+    def norm(self):  # pyright: ignore[reportIncompatibleMethodOverride]
         return self.controller.norm

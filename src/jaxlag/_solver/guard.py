@@ -71,7 +71,7 @@ class FiniteStepGuard(ForwardingAdaptiveController):
     controller: diffrax.AbstractAdaptiveStepSizeController
 
     def wrap(self, direction):
-        return FiniteStepGuard(self.controller.wrap(direction))
+        return FiniteStepGuard(self.controller.wrap(direction))  # pyright: ignore[reportCallIssue]
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
         return _guarded_init(self.controller, terms, t0, t1, y0, dt0, args, func, error_order)
@@ -107,7 +107,7 @@ def guard(controller):
     if isinstance(controller, diffrax.StepTo):
         return controller
     if isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
-        return FiniteStepGuard(controller)
+        return FiniteStepGuard(controller)  # pyright: ignore[reportCallIssue]
     return FiniteFixedStepGuard(controller)
 
 

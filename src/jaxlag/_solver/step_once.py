@@ -27,7 +27,7 @@ class StepOnce(ForwardingSolver, diffrax.AbstractWrappedSolver):
     """``solver`` with its ``step`` traced once per solve (see module). ``isinstance`` checks
     see the wrapped solver (diffrax's wrapped-solver convention)."""
 
-    solver: diffrax.AbstractSolver
+    solver: diffrax.AbstractSolver  # pyright: ignore[reportIncompatibleVariableOverride]
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         return _step(self.solver, terms, t0, t1, y0, args, solver_state, made_jump)

@@ -54,7 +54,7 @@ def partition_inexact(tree):
     return eqx.partition(tree, eqx.is_inexact_array)
 
 
-def push(fn, primals, tangents, in_axes=0):
+def push(fn, primals, tangents, in_axes: Any = 0):
     """``fn(*primals)`` and its derivatives along k directions: ``(out, tangents_out, aux)``.
 
     ``fn`` returns ``(differentiable, aux)`` (``aux`` any pytree, e.g. the static half of an
@@ -142,8 +142,10 @@ class TangentSolver(ForwardingSolver):
     solver: diffrax.AbstractSolver
     projection_tangent: Any = None
 
-    # A TangentTerm, whatever the wrapped solver takes inside it.
-    term_structure = TangentTerm
+    @property
+    def term_structure(self):
+        """A TangentTerm, whatever the wrapped solver takes inside it."""
+        return TangentTerm
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         # Jitted: diffrax traces its loop body three times, the step is traced once.
@@ -228,5 +230,5 @@ class PrimalAdaptiveStepSizes(ForwardingAdaptiveController):
 def primal_step_sizes(controller):
     """``controller`` restricted to the primal state (see :class:`PrimalAdaptiveStepSizes`)."""
     if isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
-        return PrimalAdaptiveStepSizes(controller)
+        return PrimalAdaptiveStepSizes(controller)  # pyright: ignore[reportCallIssue]
     return PrimalStepSizes(controller)

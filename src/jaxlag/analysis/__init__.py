@@ -1,7 +1,7 @@
 """Analysis tools in one namespace: equilibria, linearization and normal modes, conservation laws.
 
-``jaxlag.analysis`` gathers :mod:`jaxlag.equilibria`, :mod:`jaxlag.linearize` and
-:mod:`jaxlag.conservation` (each a small module with one job)::
+``jaxlag.analysis`` gathers equilibria, linearization and normal modes, and conservation laws
+(each a small private module with one job)::
 
     from jaxlag import analysis
     eq = analysis.equilibrium(system, q_guess, args=args)

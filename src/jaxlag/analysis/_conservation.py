@@ -21,20 +21,24 @@ Sign convention of the library: ``d/dt ∂L/∂q̇ − ∂L/∂q = Qᶜ + Qⁿ�
 
 from __future__ import annotations
 
-from typing import Any, Callable, Mapping, NamedTuple
+from typing import Callable, Mapping, NamedTuple, Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .. import _compile as compilation
+from .._custom_types import Args, Coordinates, RealScalarLike, Scalar, Vector, Velocities
 from .._mechanics import kkt as _kkt
 from .._mechanics import lagrangian as _mechanics
 from .._mechanics.constraints import constraint_rows
 from .._conventions import wrap_configuration_function
 from .._mechanics.lagrangian import as_time
 from .._conventions import as_array_leaves
+from .._system import System
+from .._trajectory import Trajectory
 
 __all__ = [
     "ConservedQuantity",
@@ -50,12 +54,16 @@ __all__ = [
 ]
 
 
-def momenta(system, q, qd, t=0.0, args=None):
+def momenta(
+    system: System, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+) -> Vector:
     """Generalized momenta ``p = ∂L/∂q̇`` (n,)."""
     return _momenta(system, *_state(q, qd, t, args))
 
 
-def energy(system, q, qd, t=0.0, args=None):
+def energy(
+    system: System, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+) -> Scalar:
     """Energy function ``h = q̇·∂L/∂q̇ − L`` (the Jacobi integral)."""
     return _energy(system, *_state(q, qd, t, args))
 
@@ -65,8 +73,12 @@ _energy = compilation.filter_jit(_mechanics.energy)
 
 
 # ----------------------------------------------------------------------------- generators
+#: A small vector (a direction, an axis, a point) of the spatial dimension ``d``.
+SpatialVector = Float[ArrayLike, " d"] | Sequence[float]
+
+
 class _Translation(eqx.Module):
-    direction: Any
+    direction: Float[Array, " d"]
     num_points: int | None = eqx.field(static=True)
 
     def __call__(self, q):
@@ -80,8 +92,8 @@ class _Translation(eqx.Module):
 
 
 class _Rotation(eqx.Module):
-    axis: Any  # None for planar rotation
-    origin: Any
+    axis: Float[Array, "3"] | None  # None for planar rotation
+    origin: Float[Array, " d"] | None
     num_points: int | None = eqx.field(static=True)
 
     def __call__(self, q):
@@ -94,12 +106,12 @@ class _Rotation(eqx.Module):
         x = q.reshape(-1, d)
         if self.origin is not None:
             x = x - self.origin.astype(q.dtype)
-        if d == 2:
+        if self.axis is None:  # d == 2
             return jnp.stack([-x[:, 1], x[:, 0]], axis=-1).reshape(-1)
         return jnp.cross(jnp.broadcast_to(self.axis.astype(q.dtype), x.shape), x).reshape(-1)
 
 
-def translation_generator(direction, num_points: int | None = None) -> Callable:
+def translation_generator(direction: SpatialVector, num_points: int | None = None) -> Callable:
     """``ξ(q)`` translating every point of a Cartesian layout ``q = (x₁, …, x_N)`` by ``direction``.
 
     ``direction`` has the spatial dimension d; ``q`` must have ``N·d`` entries (``num_points``
@@ -112,7 +124,9 @@ def translation_generator(direction, num_points: int | None = None) -> Callable:
     return _Translation(direction, num_points)
 
 
-def rotation_generator(axis=None, num_points: int | None = None, origin=None) -> Callable:
+def rotation_generator(
+    axis: SpatialVector | None = None, num_points: int | None = None, origin: SpatialVector | None = None
+) -> Callable:
     """``ξ(q)`` rotating every point of a Cartesian layout about ``axis`` through ``origin``.
 
     In 3-D (``axis`` a 3-vector) ``ξ_k = axis × (x_k − origin)``; in 2-D (``axis=None``) the
@@ -149,7 +163,14 @@ def _generator(generator, q, t, args):
     return fn, xi
 
 
-def noether_charge(system, generator: Callable, q, qd, t=0.0, args=None):
+def noether_charge(
+    system: System,
+    generator: Callable,
+    q: Coordinates,
+    qd: Velocities,
+    t: RealScalarLike = 0.0,
+    args: Args = None,
+) -> Scalar:
     r"""Noether charge ``Q_ξ = p·ξ(q, t) = Σ_i ∂L/∂q̇_i ξ_i`` for the generator ``ξ(q, [t], [args])``.
 
     For ``ξ = e_i`` (shifting one coordinate) it is ``p_i``; for a rotation of a Cartesian
@@ -165,7 +186,14 @@ def _noether_charge(system, generator, q, qd, t, args):
     return jnp.dot(_mechanics.momenta(system, q, qd, t, args), xi)
 
 
-def noether_rate(system, generator: Callable, q, qd, t=0.0, args=None):
+def noether_rate(
+    system: System,
+    generator: Callable,
+    q: Coordinates,
+    qd: Velocities,
+    t: RealScalarLike = 0.0,
+    args: Args = None,
+) -> Scalar:
     r"""``dQ_ξ/dt = δ_ξL + (Qᶜ + Qⁿᶜ)·ξ`` at a state: zero for a symmetry of the whole system.
 
     ``δ_ξL = ∂L/∂q·ξ + ∂L/∂q̇·ξ̇`` (one ``jvp`` of ``L`` along ``(ξ, ξ̇)``) is the change of the
@@ -192,15 +220,15 @@ def _noether_rate(system, generator, q, qd, t, args):
 
 # ----------------------------------------------------------------------------- ignorable
 def ignorable_coordinates(
-    system,
-    q,
-    qd,
-    t=0.0,
-    args=None,
+    system: System,
+    q: Coordinates,
+    qd: Velocities,
+    t: RealScalarLike = 0.0,
+    args: Args = None,
     *,
     num_samples: int = 8,
     spread: float = 0.5,
-    key=None,
+    key: PRNGKeyArray | None = None,
     tolerance: float = 1e-10,
 ) -> tuple[int, ...]:
     r"""Indices of the ignorable (cyclic) coordinates whose momenta are conserved.
@@ -248,10 +276,10 @@ class ConservedQuantity(NamedTuple):
     vanish).
     """
 
-    values: Any
-    initial: Any
-    max_deviation: Any
-    relative_deviation: Any
+    values: Float[Array, " times"]
+    initial: Scalar
+    max_deviation: Scalar
+    relative_deviation: Scalar
 
 
 def _summarize(values):
@@ -271,10 +299,10 @@ def _charges(system, generator, q, qd, t, args):
 
 
 def conservation_report(
-    trajectory,
+    trajectory: Trajectory,
     generators: Mapping[str, Callable] | None = None,
     *,
-    ignorable=None,
+    ignorable: Sequence[int] | None = None,
 ) -> dict[str, ConservedQuantity]:
     r"""How well the conserved quantities are conserved along ``trajectory``.
 

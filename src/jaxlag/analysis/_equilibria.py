@@ -23,21 +23,24 @@ goes in ``fixed`` (held at its guessed value, its equation dropped). Its rate is
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jaxtyping import Array, Float, Int
 
 from .. import _compile as compilation
+from .._custom_types import Args, Coordinates, RealScalarLike, Scalar, Vector, Velocities
 from .._mechanics import constraints as _constraints
 from .._mechanics import kkt as _kkt
 from .._mechanics import lagrangian as _mechanics
 from .._misc import is_concrete
 from .._conventions import as_float_state
 from .._conventions import as_array_leaves
+from .._system import System
 
 __all__ = ["Equilibrium", "equilibrium"]
 
@@ -52,14 +55,14 @@ class Equilibrium(eqx.Module):
     - ``result``: ``optimistix.RESULTS`` of the root find; ``num_steps``: Newton steps taken.
     """
 
-    q: Any
-    qd: Any
-    multipliers: Any
-    velocity_multipliers: Any
-    accelerations: Any
-    residual: Any
-    result: Any
-    num_steps: Any
+    q: Vector
+    qd: Vector
+    multipliers: Float[Array, " m_h"]
+    velocity_multipliers: Float[Array, " m_v"]
+    accelerations: Vector
+    residual: Scalar
+    result: optx.RESULTS
+    num_steps: Int[Array, ""]
 
 
 def _indices(spec, n, name):
@@ -147,11 +150,11 @@ def _solve(system, q0, qd0, t, args, target, layout, solver, max_steps, toleranc
         # step in q̇_K, exact because p = ∂L/∂q̇ is affine in q̇ for a mechanical Lagrangian.
         idx = jnp.asarray(layout.momentum_indices, int)
 
-        def momentum_error(v):
+        def momentum_residual(v):
             return _mechanics.momenta(system, q0, qd0.at[idx].set(v), t, args)[idx] - target
 
         v0 = qd0[idx]
-        v0 = v0 - jnp.linalg.solve(jax.jacfwd(momentum_error)(v0), momentum_error(v0))
+        v0 = v0 - jnp.linalg.solve(jax.jacfwd(momentum_residual)(v0), momentum_residual(v0))
         qd0 = qd0.at[idx].set(v0)
     multipliers0 = _static_multipliers(system, layout, q0, qd0, t, args)
     z0 = jnp.concatenate(
@@ -211,14 +214,14 @@ def _solve(system, q0, qd0, t, args, target, layout, solver, max_steps, toleranc
 
 
 def equilibrium(
-    system,
-    q,
-    qd=None,
-    t=0.0,
-    args=None,
+    system: System,
+    q: Coordinates,
+    qd: Velocities | None = None,
+    t: RealScalarLike = 0.0,
+    args: Args = None,
     *,
-    fixed=(),
-    momenta: dict | None = None,
+    fixed: int | Sequence[int] = (),
+    momenta: dict[int, RealScalarLike] | None = None,
     solver: optx.AbstractRootFinder | None = None,
     max_steps: int = 64,
     tolerance: float = 1e-8,
@@ -313,13 +316,14 @@ def equilibrium(
     q_out = eqx.error_if(
         eq.q,
         failed,
-        "jaxlag.equilibrium: the root find did not converge (or its solution is "
+        "jaxlag.analysis.equilibrium: the root find did not converge (or its solution is "
         "off the constraint manifold); try a closer guess, or fix the coordinates "
         "of a non-isolated equilibrium (`fixed=`).",
     )
     q_out = eqx.error_if(
         q_out,
         not_steady,
-        "jaxlag.equilibrium: the solution is not steady (q̈ ≠ 0): a coordinate in `fixed` is not cyclic.",
+        "jaxlag.analysis.equilibrium: the solution is not steady (q̈ ≠ 0): a coordinate in `fixed` "
+        "is not cyclic.",
     )
     return eqx.tree_at(lambda e: e.q, eq, q_out)

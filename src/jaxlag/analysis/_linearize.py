@@ -47,14 +47,16 @@ stable for natural systems).
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Bool, Complex, Float
 
 from .. import _compile as compilation
+from .._custom_types import Args, Coordinates, RealScalarLike, Scalar, Vector, Velocities
 from .._mechanics import constraints as _constraints
 from .._mechanics import kkt as _kkt
 from .._mechanics import lagrangian as _mechanics
@@ -62,11 +64,12 @@ from .._misc import is_concrete
 from .._tolerances import CONSTRAINT_RCOND
 from .._conventions import as_float_state
 from .._conventions import as_array_leaves
+from .._system import System
 
 __all__ = ["Linearization", "NormalModes", "linearize", "normal_modes", "tangent_basis"]
 
 
-def tangent_basis(jacobian):
+def tangent_basis(jacobian: Float[Array, "m k"]) -> Float[Array, "k k-m"]:
     """A basis ``E`` (k × (k − m)) of ``null(jacobian)`` for a full-row-rank ``jacobian`` (m × k).
 
     Orthonormal at the point (an SVD); its derivative is that of ``P E₀`` with the projector
@@ -131,38 +134,38 @@ class Linearization(eqx.Module):
     Spectral quantities use ``A_T``; see the module docstring for the stability verdict.
     """
 
-    q: Any
-    qd: Any
-    t: Any
-    state_matrix: Any
-    input_matrix: Any
-    basis: Any
-    reduced_state_matrix: Any
-    reduced_input_matrix: Any
+    q: Vector
+    qd: Vector
+    t: Scalar
+    state_matrix: Float[Array, "2*n 2*n"]
+    input_matrix: Float[Array, "2*n k"] | None
+    basis: Float[Array, "2*n d"]
+    reduced_state_matrix: Float[Array, "d d"]
+    reduced_input_matrix: Float[Array, "d k"] | None
 
     @property
-    def eigenvalues(self):
+    def eigenvalues(self) -> Complex[Array, " d"]:
         """Eigenvalues of ``A_T`` (complex), ordered by imaginary part, then real part."""
         values = jnp.linalg.eigvals(self.reduced_state_matrix)
         return values[jnp.lexsort((jnp.real(values), jnp.imag(values)))]
 
-    def modes(self):
+    def modes(self) -> tuple[Complex[Array, " d"], Complex[Array, "2*n d"]]:
         """``(eigenvalues, shapes)``: shapes (2n × d, complex) are eigenvectors in full ``(δq, δq̇)``."""
         values, vectors = jnp.linalg.eig(self.reduced_state_matrix)
         return values, self.basis.astype(vectors.dtype) @ vectors
 
     @property
-    def frequencies(self):
+    def frequencies(self) -> Float[Array, " pairs"]:
         """The ``d/2`` angular frequencies ``|Im s|`` (ascending; zeros for non-oscillating pairs)."""
         mags = jnp.sort(jnp.abs(jnp.imag(jnp.linalg.eigvals(self.reduced_state_matrix))))
         return mags[::2] if mags.shape[0] % 2 == 0 else mags[1::2]
 
     @property
-    def growth_rate(self):
+    def growth_rate(self) -> Scalar:
         """``max Re s``: positive for an unstable state."""
         return jnp.max(jnp.real(jnp.linalg.eigvals(self.reduced_state_matrix)), initial=-jnp.inf)
 
-    def is_stable(self, tolerance: float = 1e-6):
+    def is_stable(self, tolerance: float = 1e-6) -> Bool[Array, ""]:
         """``max Re s ≤ tol`` (spectral stability) as a boolean array (works under ``jit``)."""
         values = jnp.linalg.eigvals(self.reduced_state_matrix)
         tol = _spectrum_tol(self.reduced_state_matrix, tolerance)
@@ -205,11 +208,11 @@ def _input_derivative(field, args, inputs):
 
 
 def linearize(
-    system,
-    q,
-    qd=None,
-    t=0.0,
-    args=None,
+    system: System,
+    q: Coordinates,
+    qd: Velocities | None = None,
+    t: RealScalarLike = 0.0,
+    args: Args = None,
     *,
     inputs: Callable | None = None,
 ) -> Linearization:
@@ -235,7 +238,9 @@ def linearize(
             raise _raise_rank("state")
         return lin
     checked = eqx.error_if(
-        lin.state_matrix, rank_deficient, "jaxlag.linearize: redundant constraints (rank-deficient Jacobian)."
+        lin.state_matrix,
+        rank_deficient,
+        "jaxlag.analysis.linearize: redundant constraints (rank-deficient Jacobian).",
     )
     return eqx.tree_at(lambda x: x.state_matrix, lin, checked)
 
@@ -275,25 +280,27 @@ class NormalModes(eqx.Module):
       of ``null(J)``.
     """
 
-    frequencies_squared: Any
-    shapes: Any
-    mass_matrix: Any
-    stiffness_matrix: Any
-    basis: Any
+    frequencies_squared: Float[Array, " d"]
+    shapes: Float[Array, "n d"]
+    mass_matrix: Float[Array, "d d"]
+    stiffness_matrix: Float[Array, "d d"]
+    basis: Float[Array, "n d"]
 
     @property
-    def frequencies(self):
+    def frequencies(self) -> Float[Array, " d"]:
         """``sign(ω²)·√|ω²|``: angular frequencies, or minus the growth rate of an unstable mode."""
         w2 = self.frequencies_squared
         return jnp.sign(w2) * jnp.sqrt(jnp.abs(w2))
 
-    def is_stable(self, tolerance: float = 1e-10):
+    def is_stable(self, tolerance: float = 1e-10) -> Bool[Array, ""]:
         """Every ``ω² > tol·max|ω²|`` (Lagrange–Dirichlet), as a boolean array."""
         w2 = self.frequencies_squared
         return jnp.all(w2 > tolerance * jnp.max(jnp.abs(w2), initial=0.0))
 
 
-def normal_modes(system, q, t=0.0, args=None, *, tolerance: float = 1e-6) -> NormalModes:
+def normal_modes(
+    system: System, q: Coordinates, t: RealScalarLike = 0.0, args: Args = None, *, tolerance: float = 1e-6
+) -> NormalModes:
     r"""Normal modes of small oscillations about an equilibrium ``q`` at rest (``q̇ = 0``).
 
     Solves ``K_T v = ω² M_T v`` on the tangent space of the holonomic constraints (see the
@@ -328,9 +335,11 @@ def normal_modes(system, q, t=0.0, args=None, *, tolerance: float = 1e-6) -> Nor
             )
         return modes
     w2 = eqx.error_if(
-        modes.frequencies_squared, rank_deficient, "jaxlag.normal_modes: redundant constraints."
+        modes.frequencies_squared, rank_deficient, "jaxlag.analysis.normal_modes: redundant constraints."
     )
-    w2 = eqx.error_if(w2, not_equilibrium, "jaxlag.normal_modes: q is not an equilibrium at rest (q̈ ≠ 0).")
+    w2 = eqx.error_if(
+        w2, not_equilibrium, "jaxlag.analysis.normal_modes: q is not an equilibrium at rest (q̈ ≠ 0)."
+    )
     return eqx.tree_at(lambda x: x.frequencies_squared, modes, w2)
 
 

@@ -23,8 +23,10 @@ from __future__ import annotations
 import math
 
 import jax.numpy as jnp
+from jaxtyping import Array, Complex, Float
 
 from .. import contact
+from .._custom_types import Args, RealScalarLike, Scalar
 from ..coordinates import RigidBody3D, lagrangian_from_positions
 from ..analysis._linearize import linearize
 from ..rotations import axis_angle_matrix, axis_rotation
@@ -165,7 +167,9 @@ def whipple_bicycle() -> System:
     )
 
 
-def bicycle_upright_state(speed, args=None):
+def bicycle_upright_state(
+    speed: RealScalarLike, args: Args = None
+) -> tuple[Float[Array, "8"], Float[Array, "8"]]:
     """``(q, q̇)`` of :func:`whipple_bicycle` rolling upright and straight ahead at ``speed``:
     all coordinates zero (the reference configuration satisfies the front contact), ``ẋ = v``,
     wheel rates ``v/r_R`` and ``v/r_F``."""
@@ -177,7 +181,9 @@ def bicycle_upright_state(speed, args=None):
     return q, qd
 
 
-def bicycle_eigenvalues(speed, args=None, *, return_residual: bool = False):
+def bicycle_eigenvalues(
+    speed: RealScalarLike, args: Args = None, *, return_residual: bool = False
+) -> Complex[Array, "4"] | tuple[Complex[Array, "4"], Scalar]:
     r"""Eigenvalues of the lean–steer motion of :func:`whipple_bicycle` about upright
     straight-ahead motion at ``speed``, from :func:`jaxlag.analysis.linearize` of the nonlinear
     model.

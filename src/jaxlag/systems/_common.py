@@ -5,7 +5,19 @@ from __future__ import annotations
 import functools
 from collections.abc import Mapping
 from types import MappingProxyType
-from typing import Callable
+from typing import Any, Callable, Protocol
+
+from .._system import System
+
+
+class Model(Protocol):
+    """A model factory decorated by :func:`model`: returns a :class:`System` and carries its
+    default parameters."""
+
+    defaults: Mapping[str, Any]
+    allow_extra: bool
+
+    def __call__(self, *args: Any, **kwargs: Any) -> System: ...
 
 
 def model(defaults: dict, *, allow_extra: bool = False) -> Callable:
@@ -14,7 +26,7 @@ def model(defaults: dict, *, allow_extra: bool = False) -> Callable:
     compiled simulations are then reused instead of recompiled)."""
 
     def wrap(factory):
-        cached = functools.lru_cache(maxsize=None)(factory)
+        cached: Any = functools.lru_cache(maxsize=None)(factory)  # carries two extra attributes
         cached.defaults = MappingProxyType(dict(defaults))
         cached.allow_extra = allow_extra
         return cached
@@ -48,7 +60,7 @@ def check_form(name: str, form: str, allowed: tuple[str, ...]) -> str:
     return form
 
 
-def default_args(factory) -> dict:
+def default_args(factory: Model) -> dict:
     """A fresh dict of a model's default parameters (edit it and pass it as ``args``)."""
     if not hasattr(factory, "defaults"):
         raise TypeError(f"{factory!r} is not a jaxlag.systems model.")

@@ -80,11 +80,11 @@ def bead_on_rotating_parabola(form: str = "generalized") -> System:
     gravity = lambda a: p_of(a)["g"]  # noqa: E731
     if form == "generalized":
 
-        def positions(q, t, args):
+        def rotating_positions(q, t, args):
             p = p_of(args)
             return cylindrical(q[0], p["omega"] * t, p["c"] * q[0] ** 2)
 
-        return System(lagrangian_from_positions(positions, mass, gravity=gravity))
+        return System(lagrangian_from_positions(rotating_positions, mass, gravity=gravity))
 
     def positions(q):
         return cylindrical(q[0], q[1], q[2])
