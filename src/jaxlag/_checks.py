@@ -17,7 +17,7 @@ import numpy as np
 from jax.typing import DTypeLike
 
 from . import _compile as compilation
-from ._errors import Report, batch_prefix, failed_members, member, raise_from_program
+from ._errors import batch_prefix, failed_members, member
 from ._mechanics import constraints as _constraints
 from ._mechanics.kkt import accelerations_and_multipliers
 from ._mechanics.lagrangian import mass_matrix
@@ -317,9 +317,9 @@ def _batched_initial_message(static: _Static, payload) -> str | None:
 def validate_initial_state(system, q, qd, t, args, tolerance: float | None):
     """Check the initial state; return ``(q, qd)`` (threaded through the run-time checks).
 
-    Concrete inputs raise ``ValueError`` here; traced ones compile the check into the program
-    (:func:`jaxlag.failures.raise_from_program`), which raises the same message with the numbers
-    (for the first failing member of a batch) when the program runs."""
+    Concrete inputs raise ``ValueError`` here, with the numbers; traced ones compile the check
+    into the program (``eqx.branched_error_if``), which raises the static message of the first
+    failing check when the program runs."""
 
     if tolerance is None:
         tolerance = default_constraint_tolerance(jnp.result_type(q))
@@ -341,12 +341,9 @@ def validate_initial_state(system, q, qd, t, args, tolerance: float | None):
         if text is not None:
             raise ValueError(text)
         return q, qd
-    failed = jnp.any(jnp.stack([jnp.asarray(x) for x in fail.values()]))
-    report = Report(ft.partial(_batched_initial_message, static), ValueError)
-    # The matrices stay on the device: the compiled message names the problem and its numbers
-    # (eigenvalues, singular values, residuals); the eager call also shows M and the rows.
-    small = {k: v for k, v in d.items() if k not in ("mass", "rows")}
-    q = raise_from_program(q, failed, report, (small, fail))
+    # Compiled: the static message names the first failing check; the numbers are what the eager
+    # call (outside the transformation) reports.
+    q = _error_if_any(q, fail, _INITIAL_CAUSES, _INITIAL_MESSAGES)
     return q, qd
 
 
@@ -389,6 +386,50 @@ def _state_message(what: str, static: _Static, payload) -> str | None:
 
 _STATE_CHECKS = ("nonfinite", "nonfinite_args", "mass", "nonfinite_constraints", "rank")
 
+_COMPILED = (
+    " (Checked inside a compiled program: call outside jit/vmap/grad to see the numbers"
+    " and the offending constraints.)"
+)
+
+#: The compiled initial-state checks, in the order of the eager diagnosis, and their static
+#: messages (the eager message adds the numbers).
+_INITIAL_CAUSES = ("nonfinite", "nonfinite_args", "mass", "nonfinite_constraints", "not_diagonal",
+                   "rank", "violated", "off_manifold", "wrong_sign")
+_INITIAL_MESSAGES = tuple("jaxlag: " + text + _COMPILED for text in (
+    "The initial state is not finite.",
+    "A parameter in args is not finite (NaN or inf); every floating-point leaf of args must be "
+    "finite.",
+    "The mass matrix M = ∂²L/∂q̇² is singular or not positive definite at the initial state. "
+    "The Lagrangian is degenerate: every coordinate needs a kinetic term with a positive "
+    "coefficient.",
+    "The constraint functions are not finite at the initial state.",
+    "The system declares diagonal_mass=True, but M = ∂²L/∂q̇² has off-diagonal entries.",
+    "The constraints are redundant or conflicting at the initial state: the constraint Jacobian "
+    "[J; A] is rank deficient. Remove the dependent rows, or pass least_squares=True to "
+    "jl.System to accept consistent redundant constraints.",
+    "A unilateral constraint is violated at the initial state (f_i < 0).",
+    "The initial state is off the constraint manifold beyond the tolerance. " + _POINTER,
+    "A unilateral constraint in contact at t0 has a multiplier of the wrong sign: it would "
+    "have to pull to hold.",
+))
+
+_STATE_MESSAGES = tuple(text + _COMPILED for text in (
+    "the state is not finite.",
+    "a parameter in args is not finite.",
+    "the mass matrix M = ∂²L/∂q̇² is singular or not positive definite.",
+    "the constraint functions are not finite.",
+    "the constraints are redundant or conflicting (rank-deficient constraint Jacobian).",
+    "the result is not finite: a force, dissipation or constraint function returns NaN or inf, "
+    "or the state is outside their domain.",
+))
+
+
+def _error_if_any(x, fail: dict, causes: tuple[str, ...], messages: tuple[str, ...]):
+    """``x``, or ``eqx.branched_error_if`` with the static message of the first failing cause
+    (for a batch: the latest cause in the list that some member fails)."""
+    flags = jnp.stack([jnp.any(jnp.asarray(fail[cause])) for cause in causes])
+    return eqx.branched_error_if(x, jnp.any(flags), jnp.argmax(flags), messages)
+
 
 def check_state_result(system, what: str, out, q, qd, t, args):
     """``out`` (a result of a System method at one state), or a ``ValueError`` naming why it
@@ -413,6 +454,7 @@ def check_state_result(system, what: str, out, q, qd, t, args):
     d = _diagnostic_values(system, q, qd, t, args, tolerance)
     fail = _failures(d, system.least_squares, tolerance)
     flags = {k: fail[k] for k in _STATE_CHECKS}
-    bad = ~jnp.all(jnp.isfinite(out)) | jnp.any(jnp.stack(list(flags.values())))
-    report = Report(ft.partial(_state_message, what, static), ValueError)
-    return raise_from_program(out, bad, report, (bad, dict(d, q=q, qd=qd), flags))
+    flags = {**flags, "nonfinite_result": ~jnp.all(jnp.isfinite(out))}
+    messages = tuple(f"jaxlag: System.{what} cannot be trusted at this state: {text}"
+                     for text in _STATE_MESSAGES)
+    return _error_if_any(out, flags, (*_STATE_CHECKS, "nonfinite_result"), messages)

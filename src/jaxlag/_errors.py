@@ -25,22 +25,18 @@ raises :class:`SimulationError` (``throw=True``, the default):
 * called eagerly (concrete inputs), after the compiled call, synchronously on every backend, with
   the numbers and a diagnosis of the failing state (which quantity is non-finite: ``L``, ``M``,
   ``F``, constraints or accelerations; the eigenvalues of ``M``; the steps that would be needed);
-* inside a transformation (``jit``, ``vmap``, ``grad``), from the compiled program by a host
-  callback that raises the same message with the numbers. ``jax.jit`` wraps it in a
-  ``JaxRuntimeError``; on GPU it surfaces when the result is first waited on. With ``throw=False``
-  nothing is raised and ``traj.raise_if_failed()`` raises the full message later, eagerly.
+* inside a transformation (``jit``, ``vmap``, ``grad``), from the compiled program by
+  ``eqx.branched_error_if`` with the static message of the cause (:data:`RESULT_MESSAGES`); the
+  numbers stay in the returned record. With ``throw=False`` nothing is raised and
+  ``traj.raise_if_failed()`` raises the full message, with the numbers, later and eagerly.
 """
 
 from __future__ import annotations
 
-import contextlib
-import functools as ft
-import threading
-from typing import Any, TypeVar
+from typing import Any
 
 import diffrax
 import equinox as eqx
-import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -52,7 +48,30 @@ from ._mechanics.kkt import accelerations_and_multipliers
 from ._mechanics.lagrangian import mass_matrix, unconstrained_accelerations
 from ._tolerances import MASS_RCOND, rcond
 
+#: The results enumeration of a simulation: ``Failure.code`` takes one of these values.
 NONE, NONFINITE, MAX_STEPS, SOLVER, MAX_SEGMENTS, COLLAPSED = 0, 1, 2, 3, 4, 5
+
+#: Inside a compiled program the message is static (it names the cause); the numbers stay in the
+#: returned object.
+COMPILED_HINT = (
+    " (Raised inside a compiled program: the numbers are in the returned object. Pass "
+    "throw=False and read traj.failure, or call traj.raise_if_failed() outside jit/vmap/grad, "
+    "for the full diagnosis.)"
+)
+
+#: The static message of each result, indexed by its code.
+RESULT_MESSAGES: tuple[str, ...] = (
+    "",
+    "jaxlag: the simulation stopped: the equations of motion became non-finite (NaN or inf) and "
+    "a smaller step did not help." + COMPILED_HINT,
+    "jaxlag: the simulation stopped: max_steps was reached before the end time." + COMPILED_HINT,
+    "jaxlag: the simulation stopped: the diffrax solver reported a failure." + COMPILED_HINT,
+    "jaxlag: the simulation stopped: it needed more segments (events, releases, contacts) than "
+    "events=jl.Events(..., max_segments=...) allows." + COMPILED_HINT,
+    "jaxlag: the simulation stopped: the step size collapsed to round-off although every trial "
+    "state was finite, the signature of a finite-time singularity (a mass matrix becoming "
+    "singular, a velocity blowing up)." + COMPILED_HINT,
+)
 
 
 class SimulationError(RuntimeError):
@@ -301,7 +320,7 @@ def _diagnosis(system, failure: Failure, args) -> str:
 # ----------------------------------------------------------------------------- raising
 def member(tree, index):
     """Member ``index`` of a batched host pytree. Leaves carry the batch axes first, of full size
-    or of size 1 (shared: ``jax.pure_callback``'s ``vmap_method="expand_dims"`` layout)."""
+    or of size 1 (shared by every member)."""
 
     def take(x):
         x = np.asarray(x)
@@ -359,90 +378,8 @@ def raise_if_failed(failure: Failure, system=None, args=None, *, args_batched=Fa
         raise SimulationError(text)
 
 
-# The exception a compiled check raised last, with jaxlag's message: the host callback runs on
-# XLA's thread and JAX re-raises it wrapped in a runtime error; :func:`plain_errors` re-raises
-# the original (as equinox does for its own errors) instead of reading it back from the text.
-_raised: list[Exception] = []
-_raised_lock = threading.Lock()
-
-
-@contextlib.contextmanager
-def plain_errors():
-    """Inside: a jaxlag error raised by a compiled program (wrapped by JAX in a runtime error
-    with a traceback of the callback) is re-raised as the plain exception with jaxlag's message.
-    For entry points that run their own compiled program eagerly (``simulate_batch``)."""
-    with _raised_lock:
-        _raised.clear()
-    try:
-        yield
-    except jax.errors.JaxRuntimeError:
-        with _raised_lock:
-            original = _raised.pop() if _raised else None
-            _raised.clear()
-        if original is None:
-            raise
-        raise original from None
-
-
-def _report(report, payload, value):
-    text = report(jax.tree.map(np.asarray, payload))
-    if text is not None:
-        with _raised_lock:
-            _raised.append(report.error(text))
-        raise report.error("jaxlag: " + text)
-    return value
-
-
-@ft.partial(jax.custom_jvp, nondiff_argnums=(2,))
-def _checked(x, failed, report, payload):
-    def fail(value):
-        return jax.pure_callback(
-            ft.partial(_report, report),
-            jax.ShapeDtypeStruct(value.shape, value.dtype),
-            payload,
-            value,
-            vmap_method="expand_dims",
-        )
-
-    return jax.lax.cond(eqxi.unvmap_any(failed), fail, lambda value: value, x)
-
-
-@_checked.defjvp
-def _checked_jvp(report, primals, tangents):
-    x, failed, payload = primals
-    return _checked(x, failed, report, payload), tangents[0]
-
-
-class Report(eqx.Module):
-    """A host-side message builder for :func:`raise_from_program`: ``fn(payload) -> str | None``
-    and the exception class to raise. Hashable (static), so it can be closed over safely."""
-
-    fn: Any = eqx.field(static=True)
-    error: Any = eqx.field(static=True)
-
-    def __call__(self, payload):
-        return self.fn(payload)
-
-
-_T = TypeVar("_T")
-
-
-def raise_from_program(x: _T, failed, report: Report, payload) -> _T:
-    """``x``, or (inside a compiled program) a host callback raising ``report.error`` with the
-    message ``report(payload)`` when ``failed`` (any batch member). ``x`` should be an output the
-    caller uses, so that the check is not removed as dead code; transparent to differentiation.
-    The callback runs only when something failed; under ``jax.jit`` JAX wraps the exception in a
-    ``JaxRuntimeError`` whose text ends with jaxlag's message."""
-    return _checked(x, failed, report, payload)
-
-
-def _failure_report(record):
-    return message(record)
-
-
-_FAILURE_REPORT = Report(_failure_report, SimulationError)
-
-
 def error_if_failed(failure: Failure, x):
-    """Compiled counterpart of :func:`raise_if_failed` (see :func:`raise_from_program`)."""
-    return raise_from_program(x, failure.code != NONE, _FAILURE_REPORT, failure)
+    """Compiled counterpart of :func:`raise_if_failed`: ``x``, or an ``eqx.branched_error_if``
+    with the static message of the failure's code (the record itself stays in the trajectory).
+    ``x`` should be an output the caller uses, so that the check is not removed as dead code."""
+    return eqx.branched_error_if(x, failure.code != NONE, failure.code, RESULT_MESSAGES)

@@ -59,7 +59,10 @@ def _save_times_message(ts) -> str | None:
     return None
 
 
-_SAVE_TIMES = failures.Report(_save_times_message, ValueError)
+_SAVE_TIMES = (
+    "jaxlag: ts must be strictly increasing and finite (checked inside a compiled program: "
+    "call outside jit/vmap/grad to see which entry)."
+)
 _SAVE_Y = diffrax.SubSaveAt(t1=True).fn  # diffrax's default: save the state as it is
 
 
@@ -514,11 +517,11 @@ def simulate(
             if text is not None:
                 raise ValueError(text)
         elif checks.times:  # traced save times: the same check, compiled in
-            ts = failures.raise_from_program(ts, ~jnp.all(jnp.diff(ts) > 0), _SAVE_TIMES, ts)
+            ts = eqx.error_if(ts, ~jnp.all(jnp.diff(ts) > 0), _SAVE_TIMES)
         t0 = ends[0] if t0 is None else t0
         t1 = ends[-1] if t1 is None else t1
         if saveat is None:
-            saveat = diffrax.SaveAt(ts=ts)
+            saveat = diffrax.SaveAt(ts=cast(jax.Array, ts))  # an array since as_jax_array above
     if t0 is None or t1 is None:
         raise ValueError("Give save times `ts`, or `t0` and `t1` (with a diffrax.SaveAt).")
     if saveat is None:

@@ -36,7 +36,6 @@ device of every host.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 from collections.abc import Sequence
@@ -366,22 +365,21 @@ def simulate_batch(
             initial_check = (np.asarray(ts)[0], float(checks.tolerance(q0.dtype)))
             checks = dataclasses.replace(checks, initial_state=False)
     run_kwargs = {**options, "checks": checks, "throw": False}
-    with failures.plain_errors() if concrete else contextlib.nullcontext():
-        out, diagnostics = _run_batch(
-            system,
-            q0,
-            qd0,
-            ts,
-            batched_args,
-            shared_args,
-            0 if q0.ndim == 2 else None,
-            0 if qd0.ndim == 2 else None,
-            run_kwargs,
-            out_sharding,
-            initial_check,
-        )
-        if concrete:  # compiled initial-state checks raise while we wait for the result
-            jax.block_until_ready(out.failure.code)
+    out, diagnostics = _run_batch(
+        system,
+        q0,
+        qd0,
+        ts,
+        batched_args,
+        shared_args,
+        0 if q0.ndim == 2 else None,
+        0 if qd0.ndim == 2 else None,
+        run_kwargs,
+        out_sharding,
+        initial_check,
+    )
+    if concrete:  # compiled initial-state checks raise while we wait for the result
+        jax.block_until_ready(out.failure.code)
     if pad:
         out, diagnostics = jax.tree.map(
             lambda x: x[:size] if isinstance(x, jax.Array) else x, (out, diagnostics)
