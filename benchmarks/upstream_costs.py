@@ -54,21 +54,34 @@ def ops(fn):
 
 def solve(ts, y0):
     term = diffrax.ODETerm(lambda t, y, args: -y)
-    return diffrax.diffeqsolve(term, diffrax.Tsit5(), ts[0], ts[-1], None, y0,
-                               saveat=diffrax.SaveAt(ts=ts),
-                               stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8)).ys
+    return diffrax.diffeqsolve(
+        term,
+        diffrax.Tsit5(),
+        ts[0],
+        ts[-1],
+        None,
+        y0,
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8),
+    ).ys
 
 
 def main():
     print(f"jax {jax.__version__}, diffrax {diffrax.__version__}, backend {jax.default_backend()}")
-    print(f"100 chained prevbefore: {ops(chain)} HLO ops, XLA compile {compile_seconds(chain):.3f} s "
-          f"(median of 5); as one loop: {ops(loop)} ops, {compile_seconds(loop):.3f} s")
+    print(
+        f"100 chained prevbefore: {ops(chain)} HLO ops, XLA compile {compile_seconds(chain):.3f} s "
+        f"(median of 5); as one loop: {ops(loop)} ops, {compile_seconds(loop):.3f} s"
+    )
     whole = jax.jit(solve).lower(jnp.linspace(0.0, 1.0, 11), jnp.ones(2)).as_text()
-    print(f"a plain Tsit5 solve program: {whole.count(' = ')} HLO ops, "
-          f"{whole.count('next_after') + whole.count('nextafter')} nextafter ops")
+    print(
+        f"a plain Tsit5 solve program: {whole.count(' = ')} HLO ops, "
+        f"{whole.count('next_after') + whole.count('nextafter')} nextafter ops"
+    )
     callbacks = whole.count("callback")
-    print(f"host callbacks in a solve whose save times are an input: {callbacks} "
-          "(JAX's persistent cache does not store such a program)")
+    print(
+        f"host callbacks in a solve whose save times are an input: {callbacks} "
+        "(JAX's persistent cache does not store such a program)"
+    )
 
 
 if __name__ == "__main__":

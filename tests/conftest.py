@@ -17,6 +17,9 @@ os.environ["XLA_FLAGS"] = _flags.strip()
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+# Four CPU devices, so that sharded batches are tested in this process (as equinox and diffrax
+# test multi-device code); every other test runs on the default device, the first.
+jax.config.update("jax_num_cpu_devices", 4)
 # As equinox's and diffrax's test suites: implicit rank promotion is an error, so that a
 # broadcasting bug in jaxlag (or a test) cannot pass silently.
 jax.config.update("jax_numpy_rank_promotion", "raise")

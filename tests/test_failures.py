@@ -93,7 +93,9 @@ def test_nan_parameter_is_named(mode):
     def run(g):
         return jl.simulate(CARTESIAN, jnp.array([1.0, 0.0]), jnp.zeros(2), TS, args={"g": g, "l": 1.0}).q
 
-    with raises(mode, ValueError, r"not finite \(NaN or inf\): args\['g'\]", "A parameter in args is not finite"):
+    with raises(
+        mode, ValueError, r"not finite \(NaN or inf\): args\['g'\]", "A parameter in args is not finite"
+    ):
         run_in(mode, run, jnp.asarray(jnp.nan))
 
 

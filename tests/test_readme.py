@@ -106,8 +106,9 @@ def _run_block(path, heading, index, first_line, source, tmp_path):
         # It changes JAX's configuration for the whole process: run it in its own process, with
         # a cache directory of its own.
         env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path)}
-        out = subprocess.run([sys.executable, "-c", source], env=env, capture_output=True,
-                             text=True, timeout=600)
+        out = subprocess.run(
+            [sys.executable, "-c", source], env=env, capture_output=True, text=True, timeout=600
+        )
         assert out.returncode == 0, f"{path.name} line {first_line}:\n{out.stderr[-3000:]}"
         return
     # Line numbers in a traceback point into the page.

@@ -393,35 +393,49 @@ _COMPILED = (
 
 #: The compiled initial-state checks, in the order of the eager diagnosis, and their static
 #: messages (the eager message adds the numbers).
-_INITIAL_CAUSES = ("nonfinite", "nonfinite_args", "mass", "nonfinite_constraints", "not_diagonal",
-                   "rank", "violated", "off_manifold", "wrong_sign")
-_INITIAL_MESSAGES = tuple("jaxlag: " + text + _COMPILED for text in (
-    "The initial state is not finite.",
-    "A parameter in args is not finite (NaN or inf); every floating-point leaf of args must be "
-    "finite.",
-    "The mass matrix M = ∂²L/∂q̇² is singular or not positive definite at the initial state. "
-    "The Lagrangian is degenerate: every coordinate needs a kinetic term with a positive "
-    "coefficient.",
-    "The constraint functions are not finite at the initial state.",
-    "The system declares diagonal_mass=True, but M = ∂²L/∂q̇² has off-diagonal entries.",
-    "The constraints are redundant or conflicting at the initial state: the constraint Jacobian "
-    "[J; A] is rank deficient. Remove the dependent rows, or pass least_squares=True to "
-    "jl.System to accept consistent redundant constraints.",
-    "A unilateral constraint is violated at the initial state (f_i < 0).",
-    "The initial state is off the constraint manifold beyond the tolerance. " + _POINTER,
-    "A unilateral constraint in contact at t0 has a multiplier of the wrong sign: it would "
-    "have to pull to hold.",
-))
+_INITIAL_CAUSES = (
+    "nonfinite",
+    "nonfinite_args",
+    "mass",
+    "nonfinite_constraints",
+    "not_diagonal",
+    "rank",
+    "violated",
+    "off_manifold",
+    "wrong_sign",
+)
+_INITIAL_MESSAGES = tuple(
+    "jaxlag: " + text + _COMPILED
+    for text in (
+        "The initial state is not finite.",
+        "A parameter in args is not finite (NaN or inf); every floating-point leaf of args must be finite.",
+        "The mass matrix M = ∂²L/∂q̇² is singular or not positive definite at the initial state. "
+        "The Lagrangian is degenerate: every coordinate needs a kinetic term with a positive "
+        "coefficient.",
+        "The constraint functions are not finite at the initial state.",
+        "The system declares diagonal_mass=True, but M = ∂²L/∂q̇² has off-diagonal entries.",
+        "The constraints are redundant or conflicting at the initial state: the constraint Jacobian "
+        "[J; A] is rank deficient. Remove the dependent rows, or pass least_squares=True to "
+        "jl.System to accept consistent redundant constraints.",
+        "A unilateral constraint is violated at the initial state (f_i < 0).",
+        "The initial state is off the constraint manifold beyond the tolerance. " + _POINTER,
+        "A unilateral constraint in contact at t0 has a multiplier of the wrong sign: it would "
+        "have to pull to hold.",
+    )
+)
 
-_STATE_MESSAGES = tuple(text + _COMPILED for text in (
-    "the state is not finite.",
-    "a parameter in args is not finite.",
-    "the mass matrix M = ∂²L/∂q̇² is singular or not positive definite.",
-    "the constraint functions are not finite.",
-    "the constraints are redundant or conflicting (rank-deficient constraint Jacobian).",
-    "the result is not finite: a force, dissipation or constraint function returns NaN or inf, "
-    "or the state is outside their domain.",
-))
+_STATE_MESSAGES = tuple(
+    text + _COMPILED
+    for text in (
+        "the state is not finite.",
+        "a parameter in args is not finite.",
+        "the mass matrix M = ∂²L/∂q̇² is singular or not positive definite.",
+        "the constraint functions are not finite.",
+        "the constraints are redundant or conflicting (rank-deficient constraint Jacobian).",
+        "the result is not finite: a force, dissipation or constraint function returns NaN or inf, "
+        "or the state is outside their domain.",
+    )
+)
 
 
 def _error_if_any(x, fail: dict, causes: tuple[str, ...], messages: tuple[str, ...]):
@@ -455,6 +469,7 @@ def check_state_result(system, what: str, out, q, qd, t, args):
     fail = _failures(d, system.least_squares, tolerance)
     flags = {k: fail[k] for k in _STATE_CHECKS}
     flags = {**flags, "nonfinite_result": ~jnp.all(jnp.isfinite(out))}
-    messages = tuple(f"jaxlag: System.{what} cannot be trusted at this state: {text}"
-                     for text in _STATE_MESSAGES)
+    messages = tuple(
+        f"jaxlag: System.{what} cannot be trusted at this state: {text}" for text in _STATE_MESSAGES
+    )
     return _error_if_any(out, flags, (*_STATE_CHECKS, "nonfinite_result"), messages)
