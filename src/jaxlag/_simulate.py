@@ -44,7 +44,7 @@ from ._system import System
 from ._trajectory import Trajectory
 
 
-def _save_times_message(ts) -> str | None:
+def save_times_message(ts) -> str | None:
     """Why the (host, possibly batched) save times are unusable, or None."""
     ts = np.asarray(ts)
     flat = ts.reshape(-1, ts.shape[-1]) if ts.ndim else ts.reshape(1, 1)
@@ -513,7 +513,7 @@ def simulate(
         # Concrete save times are checked and sliced on the host: no eager device operations.
         ends = np.asarray(ts) if is_concrete(ts) else ts
         if is_concrete(ts):
-            text = _save_times_message(ends)
+            text = save_times_message(ends)
             if text is not None:
                 raise ValueError(text)
         elif checks.times:  # traced save times: the same check, compiled in

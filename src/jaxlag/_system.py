@@ -10,6 +10,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from . import _compile as compilation
+from ._checks import check_state_result
 from ._custom_types import Args, Coordinates, Matrix, RealScalarLike, Scalar, Vector, Velocities
 from ._mechanics.constant_mass import ConstantMass
 from ._mechanics import constraints as _constraints
@@ -166,8 +167,6 @@ class System(eqx.Module):
         out = _evaluate_at_state(quantity, self, q, qd, t, args)
         if quantity in _SOLVED:
             # The KKT solve turns a singular M or redundant rows into NaN: say so instead.
-            from ._checks import check_state_result
-
             out = check_state_result(self, quantity.__name__.strip("_"), out, q, qd, t, args)
         return out
 

@@ -61,7 +61,7 @@ from .._events import Event, Events, as_events
 from .ensemble_entry import ensemble_by_default as _ensemble_by_default
 from .ensemble_entry import run_ensemble
 from .methods import AbstractBatchMethod, Ensemble, Vmap
-from .._simulate import _save_times_message, as_projection, simulate
+from .._simulate import save_times_message, as_projection, simulate
 from .._stabilization import Baumgarte, Projection
 from .._system import System
 from .._trajectory import Trajectory
@@ -357,7 +357,7 @@ def simulate_batch(
     concrete = is_concrete((q0, qd0, ts, batched_args, shared_args))
     initial_check = None
     if concrete and _checked_on_host(ts, options):
-        text = _save_times_message(np.asarray(ts))
+        text = save_times_message(np.asarray(ts))
         if text is not None:
             raise ValueError(text)
         checks = dataclasses.replace(checks, times=False)
