@@ -30,6 +30,7 @@ pass ``adjoint=diffrax.ForwardMode()``.
 
 from __future__ import annotations
 
+import abc
 import math
 from collections.abc import Callable
 from typing import Any, cast
@@ -184,12 +185,32 @@ def _push(run, static, adjoint, primals, tangents, axes, structure):
     return jax.vmap(one, in_axes=(list(axes),), out_axes=(None, 0, None))(tangents)
 
 
+class AbstractPushingRun(eqx.Module):
+    """A run ``run(inputs, adjoint)`` that can compute its own forward sensitivities (e.g.
+    ``simulate``'s one-loop tangent solve), which :func:`call_with_forward_sensitivities` would
+    otherwise get by ``jax.vmap`` of ``jax.jvp`` of the whole run. Any other callable takes that
+    general path."""
+
+    @abc.abstractmethod
+    def __call__(self, inputs: Any, adjoint: Any) -> Any:
+        """The run's output with this adjoint."""
+
+    @abc.abstractmethod
+    def solves_with_tangents(self, inputs: Any, perturbed: list[bool] | None) -> bool:
+        """Whether :meth:`push_along` applies when the inexact input leaves flagged in
+        ``perturbed`` (leaf order) are differentiated; ``None``: for some perturbed inputs."""
+
+    @abc.abstractmethod
+    def push_along(self, primals: Any, static: Any, tangents: Any, axes: tuple, structure: Any) -> Any:
+        """``(outputs, tangents, rest)`` along k directions: the outputs' inexact leaves, their k
+        tangents (leading axis) and the other leaves."""
+
+
 def _pushes_itself(run, inputs, sizes) -> bool:
-    """Whether ``run`` computes its own forward sensitivities for these perturbed inputs
-    (``run.push_along``, e.g. ``simulate``'s one-loop tangent solve), which ``_push`` would
-    otherwise get by ``jax.vmap`` of ``jax.jvp`` of the whole run."""
-    decides = getattr(run, "solves_with_tangents", None)
-    return decides is not None and decides(inputs, [size > 0 for size in sizes])
+    """Whether ``run`` computes its own forward sensitivities for these perturbed inputs."""
+    return isinstance(run, AbstractPushingRun) and run.solves_with_tangents(
+        inputs, [size > 0 for size in sizes]
+    )
 
 
 def call_with_forward_sensitivities(
@@ -257,13 +278,9 @@ def call_with_forward_sensitivities(
             tangents, axes = _unit_tangents(shapes, sizes, k)
 
             def pushed(p, t):
-                return cast(Any, run).push_along(p, static, t, tuple(axes), structure)  # see _pushes_itself
+                return cast(AbstractPushingRun, run).push_along(p, static, t, tuple(axes), structure)
 
-            shapes_of = getattr(run, "push_along_shapes", None)
-            if shapes_of is None:
-                out_shape = jax.eval_shape(pushed, primals, tangents)[0]
-            else:  # a saved program knows its shapes without a trace
-                out_shape = shapes_of(primals, static, tangents, tuple(axes), structure)[0]
+            out_shape = jax.eval_shape(pushed, primals, tangents)[0]
             out_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(out_shape))
             if k * out_bytes <= choice.max_bytes:
                 decided.update(sizes=sizes, outputs=jax.tree.structure(out_shape))

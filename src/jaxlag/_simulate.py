@@ -27,6 +27,7 @@ from ._custom_types import Args, Coordinates, RealScalarLike, SaveTimes, Velocit
 from ._events import Event, Events, as_events, solve_segments
 from ._vector_field import EquationsOfMotion
 from ._adjoint import (
+    AbstractPushingRun,
     ForwardSensitivities,
     call_with_forward_sensitivities,
     captures_traced_values,
@@ -315,7 +316,7 @@ def _solve_with_tangents(run, static, primals, tangents, axes, structure):
     )
 
 
-class _Run(eqx.Module):
+class _Run(AbstractPushingRun):
     """The simulation as a function of its inputs and the adjoint: ``run(inputs, adjoint)``.
 
     A module, not a closure, so that it compares equal across ``simulate`` calls with the same
@@ -369,10 +370,6 @@ class _Run(eqx.Module):
     def push_along(self, primals, static, tangents, axes, structure):
         """``(outputs, tangents, rest)`` along k directions: :func:`_solve_with_tangents`."""
         return _solve_with_tangents(self, static, primals, tangents, axes, structure)
-
-    def push_along_shapes(self, primals, static, tangents, axes, structure):
-        """``jax.eval_shape`` of :meth:`push_along`."""
-        return eqx.filter_eval_shape(_solve_with_tangents, self, static, primals, tangents, axes, structure)
 
     def __call__(self, inputs: SimulationInputs, adjoint):
         i = inputs

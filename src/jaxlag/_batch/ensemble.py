@@ -85,7 +85,7 @@ class RK4(diffrax.AbstractERK):
 
 def tableau_of(solver) -> diffrax.ButcherTableau:
     """The explicit Butcher tableau of a diffrax solver, or a clear error."""
-    tableau = getattr(solver, "tableau", None)
+    tableau = solver.tableau if isinstance(solver, diffrax.AbstractRungeKutta) else None
     if isinstance(solver, diffrax.AbstractWrappedSolver) or not isinstance(tableau, diffrax.ButcherTableau):
         raise TypeError(
             f"The ensemble integrator needs an explicit Runge–Kutta solver with a Butcher tableau "
