@@ -180,7 +180,8 @@ def _failures(d, least_squares: bool, tolerance: float, xp=jnp):
     eig = d["eigenvalues"]
     sv = d["singular_values"]
     residual = xp.concatenate([xp.abs(d["f"]), xp.abs(d["f_dot"]), xp.abs(d["g"]), xp.zeros((1,), eig.dtype)])
-    rank = xp.sum(sv > rcond(CONSTRAINT_RCOND, sv.dtype) * sv[0])
+    # As a float: num_active is a sum of 0/1 row weights (no implicit int/float promotion).
+    rank = xp.sum(sv > rcond(CONSTRAINT_RCOND, sv.dtype) * sv[0]).astype(d["num_active"].dtype)
     return dict(
         nonfinite=~d["finite"],
         nonfinite_args=~xp.all(d["args_finite"]),

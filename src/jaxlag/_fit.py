@@ -701,7 +701,13 @@ def fit(
     observed = int(np.sum(np.isfinite(np.asarray(batch.observations))))
     noise = None if noise_std is None else np.asarray(float(noise_std), batch.q0.dtype)
     fitted, standard_errors, covariance, residual_std, initial, states = _summary(
-        model, free, fixed_states, r, jac_free, np.asarray(max(observed - flat.size, 1)), noise
+        model,
+        free,
+        fixed_states,
+        r,
+        jac_free,
+        np.asarray(max(observed - flat.size, 1), batch.q0.dtype),
+        noise,
     )
     return FitResult(
         fitted,
@@ -761,9 +767,9 @@ def _summary(model, free, fixed_states, r, jac_free, dof, noise):
     covariance ``σ² (JᵀJ)⁺`` (``J`` in physical parameters, ``σ² = Σr²/dof`` unless the noise
     σ is known), the residual standard deviation and the segment states."""
     fitted = model.physical(free["params"])
-    x = jnp.concatenate(
-        [model.spec.ravel(fitted), ravel_pytree({k: v for k, v in free.items() if k != "params"})[0]]
-    )
+    physical = model.spec.ravel(fitted)
+    free_states = ravel_pytree({k: v for k, v in free.items() if k != "params"})[0]
+    x = jnp.concatenate([physical, free_states.astype(physical.dtype)])  # ravel_pytree({}): float32
     jac = jac_free @ _free_variables_jacobian(model, x, free)
     if noise is None:
         sigma2 = jnp.sum(r**2) / dof

@@ -162,7 +162,7 @@ class System(eqx.Module):
     def _at_state(self, quantity, q, qd, t, args):
         q, qd = jnp.asarray(q), jnp.asarray(qd)
         self.check(q, qd, t, args)
-        t = jnp.asarray(t, dtype=jnp.result_type(q.dtype, jnp.float32))
+        t = _mechanics.as_time(t, q)
         args = as_array_leaves(args)
         out = _evaluate_at_state(quantity, self, q, qd, t, args)
         if quantity in _SOLVED:

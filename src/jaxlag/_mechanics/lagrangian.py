@@ -25,8 +25,14 @@ from jax.typing import ArrayLike
 from .linalg import spd_solver
 
 
+def time_dtype(dtype) -> jnp.dtype:
+    """The dtype of times for coordinates of ``dtype``: the same floating type, or JAX's default
+    float for integer coordinates (no implicit promotion: valid under strict dtype promotion)."""
+    return jnp.dtype(dtype) if jnp.issubdtype(dtype, jnp.floating) else jnp.dtype(jnp.result_type(float))
+
+
 def as_time(t, q):
-    return jnp.asarray(t, dtype=jnp.result_type(q.dtype, jnp.float32))
+    return jnp.asarray(t, dtype=time_dtype(q.dtype))
 
 
 def _unit_basis(x):
