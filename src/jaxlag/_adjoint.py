@@ -10,7 +10,7 @@ whatever k is (measured in ``benchmarks/``). :class:`ForwardSensitivities`, the 
   and how many scalars k they hold;
 * k ≤ ``max_tangents`` (and the sensitivities fit in ``max_bytes``): the simulation is pushed
   forward along the k unit directions at once: by ``run.push_along`` when the run offers it
-  (``simulate``'s one-loop tangent solve, :mod:`jaxlag.tangent_solve`), else ``jax.jvp``
+  (``simulate``'s one-loop tangent solve, :mod:`jaxlag._solver.tangent_solve`), else ``jax.jvp``
   through diffrax's ``ForwardMode`` under ``jax.vmap``; the sensitivities
   ``S = ∂(outputs)/∂θ`` are kept and the backward pass is one contraction ``θ̄ = Sᵀȳ``.
   Memory: k times the saved outputs, not the solver's steps;
@@ -53,7 +53,7 @@ class ForwardSensitivities(eqx.Module):
     differentiated and ``k ×`` (the saved outputs) is at most ``max_bytes``; otherwise the
     ``fallback`` adjoint's reverse pass. ``inner`` pushes the tangents (``diffrax.ForwardMode()``).
     The default ``max_tangents = 10`` is the measured crossover (k ≈ 11–14 for a double pendulum).
-    See :mod:`jaxlag.sensitivities`.
+    See :mod:`jaxlag._adjoint`.
     """
 
     max_tangents: int = eqx.field(static=True, default=10)
@@ -273,7 +273,7 @@ def call_with_forward_sensitivities(
         sizes = [math.prod(shape) if leaf.perturbed else 0 for leaf, (shape, _) in zip(leaves, shapes)]
         k = sum(sizes)
         if 0 < k <= choice.max_tangents and _pushes_itself(run, inputs, sizes):
-            # One solver loop for the state and its k tangents (jaxlag.tangent_solve), not the
+            # One solver loop for the state and its k tangents (jaxlag._solver.tangent_solve), not the
             # jvp and vmap of the whole loop. Its shapes come from a trace that the call reuses.
             tangents, axes = _unit_tangents(shapes, sizes, k)
 

@@ -1,7 +1,7 @@
 r"""Run-time failures of a simulation: detected where they happen, reported with the numbers.
 
 Three things can stop an integration after the initial state has passed its checks
-(:mod:`jaxlag.checks`):
+(:mod:`jaxlag._checks`):
 
 * **non-finite equations of motion** (code 1): a step produces NaN/inf (``q**1.5`` of a negative
   coordinate, a mass matrix that becomes exactly singular, a NaN that a force function returns)

@@ -264,7 +264,7 @@ def solve_segments(
     system.check(q0, qd0, t0, args)
     if check:
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
-    # From here on a state-independent M is inverted once (jaxlag.constant_mass).
+    # From here on a state-independent M is inverted once (jaxlag._mechanics.constant_mass).
     system = with_constant_mass(system, q0, qd0, t0, args)
     m_h = system.num_holonomic(q0, t0, args)
     unilateral = jnp.zeros((m_h,), bool)
@@ -302,7 +302,7 @@ def solve_segments(
             adjoint=adjoint,
             event=segment.diffrax_event(root_finder),
             max_steps=max_steps,
-            throw=False,  # recorded in `failure`; simulate raises (jaxlag.failures)
+            throw=False,  # recorded in `failure`; simulate raises (jaxlag._errors)
             progress_meter=progress_meter,
         )
         if solution.ts is None or solution.ys is None:  # the SaveAt above saves both

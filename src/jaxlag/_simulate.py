@@ -77,7 +77,7 @@ def _as_time(t, dtype):
 
 def _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection, adjoint):
     """What the solver loop integrates: ``(system, solver, term)`` with a state-independent
-    ``M`` found and inverted once (:mod:`jaxlag.constant_mass`) and the solver wrapped for the
+    ``M`` found and inverted once (:mod:`jaxlag._mechanics.constant_mass`) and the solver wrapped for the
     projection."""
     # A state-independent M (Cartesian particles) is inverted once here, not at every step.
     fast = with_constant_mass(system, q0, qd0, t0, args)
@@ -102,8 +102,8 @@ def _integrate(
     progress_meter,
     with_tangents=False,
 ):
-    """``diffrax.diffeqsolve`` without diffrax's exceptions: failures are recorded (:mod:`jaxlag.failures`).
-    ``with_tangents``: ``solver`` is a :class:`~jaxlag.tangent_solve.TangentSolver` and ``y0``
+    """``diffrax.diffeqsolve`` without diffrax's exceptions: failures are recorded (:mod:`jaxlag._errors`).
+    ``with_tangents``: ``solver`` is a :class:`~jaxlag._solver.tangent_solve.TangentSolver` and ``y0``
     carries tangents, which the (guarded) ``controller`` is kept from seeing."""
     if with_tangents:
         controller = tangent_solve.primal_step_sizes(controller)
@@ -174,7 +174,7 @@ def _solve(
     solver = stages_for_adjoint(solver, adjoint)  # diffrax does not see it through StepOnce
     fast, solver, term = _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection, adjoint)
     solver = StepOnce(solver)
-    # Failures are recorded (jaxlag.failures), not thrown by diffrax: simulate raises with the
+    # Failures are recorded (jaxlag._errors), not thrown by diffrax: simulate raises with the
     # numbers and a diagnosis instead of "max_steps reached" after 65,536 rejected NaN steps.
     controller = guard(stepsize_controller)
     solution = _integrate(
@@ -197,7 +197,7 @@ def _solve(
 
 class SimulationInputs(eqx.Module):
     """The inputs of one simulation, as :class:`_Run` receives them: a pytree whose inexact array
-    leaves are what ``jax.grad`` may differentiate (:mod:`jaxlag.sensitivities`; the other leaves
+    leaves are what ``jax.grad`` may differentiate (:mod:`jaxlag._adjoint`; the other leaves
     are static). ``events``: the user conditions and the segmented integration's options (only
     read when the run is segmented); ``event``: a diffrax event (plain solves only)."""
 
@@ -245,8 +245,8 @@ def _user_functions(inputs: SimulationInputs):
 @compilation.filter_jit
 def _solve_with_tangents(run, static, primals, tangents, axes, structure):
     """The solve of :func:`_solve` (``run``'s, not segmented) and its derivatives along k
-    directions in one solver loop (:mod:`jaxlag.tangent_solve`): ``(outputs, tangents,
-    rest)`` as ``jax.vmap(jax.jvp(...))`` of ``run`` gives them (:mod:`jaxlag.sensitivities`),
+    directions in one solver loop (:mod:`jaxlag._solver.tangent_solve`): ``(outputs, tangents,
+    rest)`` as ``jax.vmap(jax.jvp(...))`` of ``run`` gives them (:mod:`jaxlag._adjoint`),
     the outputs' inexact leaves, their k tangents (leading axis) and the other leaves.
 
     ``primals``: the inexact leaves of the inputs (structure ``structure``, the rest in
@@ -471,7 +471,7 @@ def simulate(
     ``max_steps``, ``adjoint``, ``event``, ``throw`` and ``progress_meter``. The default adjoint,
     :class:`~jaxlag.ForwardSensitivities`, gives ``jax.grad`` by forward sensitivities when at most
     10 scalars are differentiated and by diffrax's ``RecursiveCheckpointAdjoint`` otherwise
-    (:mod:`jaxlag.sensitivities`); for ``jax.jacfwd`` pass ``diffrax.ForwardMode()``.
+    (:mod:`jaxlag._adjoint`); for ``jax.jacfwd`` pass ``diffrax.ForwardMode()``.
 
     Constrained systems:
 
@@ -481,10 +481,10 @@ def simulate(
     - ``baumgarte``: optional :class:`~jaxlag.Baumgarte` feedback in the acceleration constraint.
     - ``throw``: on a run-time failure (non-finite equations of motion, a collapsing step size,
       ``max_steps``, ``max_segments``) raise :class:`~jaxlag.SimulationError` with the numbers
-      and a diagnosis (:mod:`jaxlag.failures`); with ``False`` return the trajectory, whose
+      and a diagnosis (:mod:`jaxlag._errors`); with ``False`` return the trajectory, whose
       ``failure`` record says what happened (``traj.raise_if_failed()`` raises later).
 
-    Events and unilateral constraints (see :mod:`jaxlag.events`):
+    Events and unilateral constraints (see :mod:`jaxlag._events`):
 
     - ``events``: a :class:`~jaxlag.Events` of :class:`~jaxlag.Event` conditions (terminal or
       recorded) and the options of the segmented integration, e.g.
@@ -617,7 +617,7 @@ def as_projection(projection, system: System) -> Projection | None:
 
 
 def _checked_initial_state(inputs: SimulationInputs, tolerance) -> SimulationInputs:
-    """``inputs`` with ``(q0, qd0)`` checked (:func:`~jaxlag.checks.validate_initial_state`:
+    """``inputs`` with ``(q0, qd0)`` checked (:func:`~jaxlag._checks.validate_initial_state`:
     raises here for concrete values, compiles the check in otherwise)."""
     q0, qd0 = validate_initial_state(inputs.system, inputs.q0, inputs.qd0, inputs.t0, inputs.args, tolerance)
     return dataclasses.replace(inputs, q0=q0, qd0=qd0)

@@ -56,7 +56,7 @@ def _schur_correction(system, solve_mass, rows, residual, active=None):
     """``M⁻¹Gᵀ (G M⁻¹ Gᵀ)⁻¹ r``: the M-weighted minimal change that removes the linear residual.
 
     ``solve_mass`` applies ``M⁻¹`` (factored once per projection). Rows whose ``active`` entry
-    is zero are left out (see :func:`jaxlag.kkt.deactivate`).
+    is zero are left out (see :func:`jaxlag._mechanics.kkt.deactivate`).
     """
     rows, residual, pad = deactivate(rows, residual, active)
     minv_gt = solve_mass(rows.T)
@@ -316,7 +316,7 @@ def stages_for_adjoint(solver, adjoint):
     (``"lax"`` for ``ForwardMode``, ``"bounded"`` for ``DirectAdjoint``; the others leave it),
     set here on ``solver`` itself: diffrax finds the solver by an ``isinstance`` check that sees
     through one wrapper, and jaxlag wraps user solvers twice (projection,
-    :mod:`jaxlag.step_once`)."""
+    :mod:`jaxlag._solver.step_once`)."""
     if isinstance(adjoint, diffrax.ForwardMode):
         return stages_for_forward_mode(solver)
     if isinstance(adjoint, diffrax.DirectAdjoint):

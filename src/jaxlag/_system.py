@@ -27,7 +27,7 @@ from ._conventions import (
 class System(eqx.Module):
     r"""A mechanical system: ``L(q, q̇, t)`` plus constraints and non-conservative forces.
 
-    Every function follows one convention (see :mod:`jaxlag.conventions`): state positionally,
+    Every function follows one convention (see :mod:`jaxlag._conventions`): state positionally,
     ``t`` and ``args`` by keyword if declared.
 
     **Arguments:**
@@ -60,7 +60,7 @@ class System(eqx.Module):
     least_squares: bool = eqx.field(static=True)
     unilateral: tuple[int, ...] = eqx.field(static=True)
     diagonal_mass: bool = eqx.field(static=True)
-    # Set by simulate while tracing when M does not depend on the state (jaxlag.constant_mass).
+    # Set by simulate while tracing when M does not depend on the state (jaxlag._mechanics.constant_mass).
     constant_mass: ConstantMass | None = None
 
     def __init__(

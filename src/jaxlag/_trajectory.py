@@ -91,7 +91,7 @@ class Trajectory(eqx.Module):
     active: Bool[Array, "*batch times m_h"] | None
     #: :class:`~jaxlag.EventLog` of the switches and events, or None.
     events: EventLog | None
-    #: :class:`jaxlag.failures.Failure`: how the run ended (``code`` 0: completed), or None.
+    #: :class:`jaxlag._errors.Failure`: how the run ended (``code`` 0: completed), or None.
     failure: Failure | None
     system_static: System = eqx.field(static=True)
 

@@ -13,7 +13,7 @@ has finished (finished members are masked), so a batch costs ``B ×`` the larges
 it. Group members of similar stiffness, or use a constant step.
 
 With ``method=jl.Ensemble()`` the batch is instead an array axis of one batched Runge–Kutta
-loop (:mod:`jaxlag.ensemble`): no per-member solver loop, each member with its own step size when
+loop (:mod:`jaxlag._batch.ensemble`): no per-member solver loop, each member with its own step size when
 adaptive; ``method=None`` (the default) uses it on accelerators for constant steps and keeps
 ``jl.Vmap()`` everywhere else (always on CPU).
 
@@ -230,7 +230,7 @@ def simulate_batch(
     - ``method``: :class:`~jaxlag.Vmap` (``jl.Vmap()``: ``jax.vmap`` of
       :func:`~jaxlag.simulate`: every option, events, unilateral constraints),
       :class:`~jaxlag.Ensemble` (``jl.Ensemble(backend="auto")``: one batched Runge–Kutta loop
-      for the whole batch, :mod:`jaxlag.ensemble`: explicit tableau solvers, constant or PID
+      for the whole batch, :mod:`jaxlag._batch.ensemble`: explicit tableau solvers, constant or PID
       steps; ``ts`` may then also be per member, ``(B, T)``; ``backend`` ``"xla"``,
       ``"pallas"``, ``"pallas-interpret"`` or ``"auto"``) or ``None`` (default): ``jl.Ensemble()``
       on an accelerator (GPU/TPU) for constant steps whose step divides the save intervals (the
@@ -425,7 +425,7 @@ def _raise_for_local_members(failure) -> None:
 
 def _member_args(batched_args, shared_args):
     """Host args with a leading batch axis on the batched leaves and size 1 on the shared ones
-    (the layout :func:`jaxlag.failures.member` indexes)."""
+    (the layout :func:`jaxlag._errors.member` indexes)."""
     batched = jax.tree.map(np.asarray, batched_args)
     shared = jax.tree.map(lambda x: np.asarray(x)[None] if eqx.is_array_like(x) else x, shared_args)
     return eqx.combine(batched, shared)

@@ -35,7 +35,7 @@ with ``adjoint=diffrax.ForwardMode()``, as in diffrax. The saved states are the 
 buffers: every member writes once per iteration (one batched scatter), into its next save column
 when it lands on a save time and into a spare column otherwise, so checkpoints never copy them.
 
-The GPU kernel backend is :mod:`jaxlag.ensemble_pallas`.
+The GPU kernel backend is :mod:`jaxlag._batch.pallas`.
 """
 
 from __future__ import annotations
@@ -228,7 +228,7 @@ class BatchedField(eqx.Module):
     """``(t (B,), (q, q̇) (B, n)) ↦ ((q̇, q̈), ...)``: the equations of motion vmapped over members.
 
     ``member_args`` have a leading batch axis on every leaf, ``shared_args`` none;
-    ``constant_mass`` is the per-member :class:`~jaxlag.constant_mass.ConstantMass` (or ``None``).
+    ``constant_mass`` is the per-member :class:`~jaxlag._mechanics.constant_mass.ConstantMass` (or ``None``).
     """
 
     system: Any

@@ -1,9 +1,9 @@
 """``simulate_batch(..., method=jl.Ensemble())``: options, checks and the compiled call.
 
 Turns the options of :func:`~jaxlag.simulate` (as :func:`~jaxlag.simulate_batch` received them)
-into :class:`~jaxlag.ensemble.EnsembleSettings`, rejects what the ensemble loop does not do (with
+into :class:`~jaxlag._batch.ensemble.EnsembleSettings`, rejects what the ensemble loop does not do (with
 a pointer to ``method=jl.Vmap()``), computes the
-constant-step grid on the host and runs :func:`~jaxlag.ensemble.integrate_ensemble` (or the Pallas
+constant-step grid on the host and runs :func:`~jaxlag._batch.ensemble.integrate_ensemble` (or the Pallas
 kernel) under one ``jax.jit``.
 """
 

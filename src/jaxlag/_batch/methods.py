@@ -22,7 +22,7 @@ class Vmap(AbstractBatchMethod):
 
 
 class Ensemble(AbstractBatchMethod):
-    """One batched Runge–Kutta loop for the whole batch (:mod:`jaxlag.ensemble`): explicit
+    """One batched Runge–Kutta loop for the whole batch (:mod:`jaxlag._batch.ensemble`): explicit
     Runge–Kutta solvers with a Butcher tableau (``diffrax.Tsit5()``, ``diffrax.Dopri5()``,
     ``jl.RK4()``, ...), constant or PID steps, each member with its own step size when
     adaptive; per-member save times ``ts`` of shape ``(B, T)`` are allowed.

@@ -13,7 +13,7 @@ wasted work. Before integrating, :func:`with_constant_mass` traces ``M(q, q̇, t
   inverted once per integration, outside the solver loop, and stays differentiable in ``args``.
 * otherwise (``M(q)`` of generalized coordinates) nothing changes.
 
-The analysis (:mod:`jaxlag.dependence`) is conservative: a false "depends" only loses the
+The analysis (:mod:`jaxlag._mechanics.dependence`) is conservative: a false "depends" only loses the
 speed-up, it never changes a result.
 """
 

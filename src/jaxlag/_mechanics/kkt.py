@@ -46,7 +46,7 @@ def solve_kkt(mass, force, rows, rhs, least_squares: bool = False, active=None, 
     """Solve ``M q̈ = F + Gᵀ Λ``, ``G q̈ = c``; return ``(q̈, Λ)``.
 
     ``mass`` is ``M`` (n, n), factored here (a division if ``diagonal_mass``), or a function
-    ``b ↦ M⁻¹ b`` for vectors and matrices (e.g. :func:`jaxlag.linalg.spd_solver`'s result);
+    ``b ↦ M⁻¹ b`` for vectors and matrices (e.g. :func:`jaxlag._mechanics.linalg.spd_solver`'s result);
     ``active`` (m,) optionally switches constraints off (their multipliers are zero).
     """
     solve_mass: Callable[[Any], Any] = mass if callable(mass) else spd_solver(mass, diagonal_mass)

@@ -133,7 +133,7 @@ class TangentSolver(ForwardingSolver):
     An explicit Runge–Kutta step of the variational equations is the ``jvp`` of the step of
     the equations (every stage is a vector-field evaluation and the rest is linear), so the
     wrapped solver steps the augmented state as it is, its dense output interpolates both. A
-    :class:`~jaxlag.stabilization.ProjectedSolver` projects ``y`` after the step and pushes
+    :class:`~jaxlag._stabilization.ProjectedSolver` projects ``y`` after the step and pushes
     ``Y`` through the projection (``push``), with the derivatives of its system's arrays,
     ``projection_tangent`` (structured as ``eqx.partition(solver.system, is_inexact)[0]``, k
     leading), and of ``args`` (the term's). The error estimate includes the tangents: pair the
