@@ -11,6 +11,8 @@ import pytest
 import jaxlag as jl
 from jaxlag._variational import LagrangianStructure, lagrangian_structure, simulate_variational
 
+METHOD = {"rattle": jl.Rattle(), "variational": jl.VariationalMidpoint()}
+
 jax.config.update("jax_enable_x64", True)
 
 EPS = float(np.finfo(np.float64).eps)
@@ -155,7 +157,7 @@ def test_spherical_pendulum_angular_momentum_is_conserved_to_roundoff(method):
     q0 = jnp.array([l * math.sin(2.0), 0.0, -l * math.cos(2.0)])
     qd0 = jnp.array([0.0, 1.7, 0.0])
     n = 20_000
-    traj = simulate_variational(system, q0, qd0, dt=0.01, num_steps=n, save_every=10, method=method)
+    traj = simulate_variational(system, q0, qd0, dt=0.01, num_steps=n, save_every=10, method=METHOD[method])
     lz = m * (traj.q[:, 0] * traj.qd[:, 1] - traj.q[:, 1] * traj.qd[:, 0])
     # Discrete Noether: L_d and f are invariant under rotations about z, so L_z of the discrete
     # momenta is exact up to rounding, which adds up at most linearly: with ~10 roundings per
@@ -187,7 +189,7 @@ def test_convergence_order_on_the_pendulum_closed_form(method, order):
             num_steps=200,
             save_every=50,
             args=PENDULUM_ARGS,
-            method=method,
+            method=METHOD[method],
             order=order,
         )
         i = n // 50
@@ -225,7 +227,7 @@ def test_multipliers_follow_the_kkt_sign_convention_with_a_state_dependent_mass_
             dt=1e-3,
             num_steps=1000,
             save_every=100,
-            method=method,
+            method=METHOD[method],
         )
         th, thd = traj.q[:, 1], traj.qd[:, 1]
         closed_form = -m * l * thd**2 - m * g * jnp.cos(th)
@@ -256,7 +258,7 @@ def test_general_lagrangian_with_constraint_matches_the_kkt_path():
     f, f_dot, _ = traj.constraint_residuals
     assert float(jnp.max(jnp.abs(f))) <= 1e-12 and float(jnp.max(jnp.abs(f_dot))) <= 1e-12
     with pytest.raises(ValueError, match="quadratic in q̇"):
-        simulate_variational(system, q0, qd0, dt=1e-3, num_steps=10, method="rattle")
+        simulate_variational(system, q0, qd0, dt=1e-3, num_steps=10, method=jl.Rattle())
     # Unconstrained, the velocity stage is the plain inverse Legendre transform (Newton in q̇).
     # The potential is central, so the angular momentum q × p of the relativistic momenta
     # p = γ m q̇ is a discrete Noether invariant: exact up to rounding (bound: 10 roundings per
@@ -280,7 +282,9 @@ def test_rheonomic_constraint_moving_pivot():
     qd0 = jnp.array([a * w, 0.0])  # moves with the pivot: ḟ = 0
     ref = jl.simulate(system, q0, qd0, jnp.array([0.0, 1.0, 2.0]), **TIGHT)
     for method in ("rattle",):  # explicit positions; the midpoint path shares the f_t handling
-        traj = simulate_variational(system, q0, qd0, dt=1e-3, num_steps=2000, save_every=1000, method=method)
+        traj = simulate_variational(
+            system, q0, qd0, dt=1e-3, num_steps=2000, save_every=1000, method=METHOD[method]
+        )
         f, f_dot, _ = traj.constraint_residuals  # ḟ = J q̇ + ∂f/∂t
         assert float(jnp.max(jnp.abs(f))) <= 1e-12 and float(jnp.max(jnp.abs(f_dot))) <= 1e-12
         # O(h²) global error: measured 4.5e-7 (q), 5e-6 (q̇), 2e-5 (λ ≈ −9).
@@ -307,7 +311,7 @@ def test_dissipation_by_discrete_lagrange_dalembert_is_second_order(method):
             dt=t1 / n,
             num_steps=400,
             save_every=100,
-            method=method,
+            method=METHOD[method],
         )
         errors.append(abs(float(traj.q[n // 100, 0]) - exact))
     orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
@@ -319,21 +323,21 @@ def test_structure_analysis_is_conservative():
     cartesian = jl.System(lambda q, qd: 0.5 * jnp.sum(qd**2) - 9.81 * q[1])
     assert lagrangian_structure(cartesian, q, qd) == LagrangianStructure(True, True)
     # Quadratic, but written so that no structural analysis can see it: a slower path, and
-    # method="rattle" checks quadraticity numerically instead.
+    # method=jl.Rattle() checks quadraticity numerically instead.
     hidden = jl.System(
         lambda q, qd: 0.5 * jnp.linalg.norm(qd) ** 2 - 9.81 * q[1],
         holonomic=lambda q: jnp.array([jnp.sum(q**2) - 0.13]),
     )
     assert lagrangian_structure(hidden, q, qd) == LagrangianStructure(False, False)
     q0, qd0 = jnp.array([0.3, -0.2]), jnp.array([0.2, 0.3])
-    a = simulate_variational(hidden, q0, qd0, dt=1e-3, num_steps=100, method="rattle")
+    a = simulate_variational(hidden, q0, qd0, dt=1e-3, num_steps=100, method=jl.Rattle())
     b = simulate_variational(
         jl.System(cartesian.lagrangian, holonomic=hidden.holonomic),
         q0,
         qd0,
         dt=1e-3,
         num_steps=100,
-        method="rattle",
+        method=jl.Rattle(),
     )
     np.testing.assert_allclose(a.q, b.q, atol=1e-13)  # the same scheme, solved differently
 
@@ -351,7 +355,7 @@ def test_gradient_through_implicit_steps_matches_central_differences(method):
             num_steps=200,
             save_every=20,
             args=params["args"],
-            method=method,
+            method=METHOD[method],
         )
         return jnp.sum(traj.q[:, 0] ** 2) + jnp.sum(traj.qd[:, 1]) + 0.01 * jnp.sum(traj.stats["multipliers"])
 
@@ -445,8 +449,8 @@ def test_unsupported_and_invalid_input():
         simulate_variational(rolling, q0, qd0, dt=0.01, num_steps=10, args=PENDULUM_ARGS)
     with pytest.raises(ValueError, match="multiple of save_every"):
         simulate_variational(PENDULUM, q0, qd0, dt=0.01, num_steps=10, save_every=3, args=PENDULUM_ARGS)
-    with pytest.raises(ValueError, match="method"):
-        simulate_variational(PENDULUM, q0, qd0, dt=0.01, num_steps=10, method="verlet", args=PENDULUM_ARGS)
+    with pytest.raises(TypeError, match=r"method=jl.Rattle\(\), method=jl.VariationalMidpoint\(\)"):
+        simulate_variational(PENDULUM, q0, qd0, dt=0.01, num_steps=10, method="rattle", args=PENDULUM_ARGS)
     with pytest.raises(ValueError, match="order"):
         simulate_variational(PENDULUM, q0, qd0, dt=0.01, num_steps=10, order=3, args=PENDULUM_ARGS)
     with pytest.raises(ValueError, match="off the constraint manifold"):

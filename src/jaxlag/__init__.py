@@ -56,7 +56,12 @@ from ._stabilization import (
 )
 from ._system import System as System
 from ._trajectory import Trajectory as Trajectory
-from ._variational import simulate_variational as simulate_variational
+from ._variational import (
+    AbstractVariationalMethod as AbstractVariationalMethod,
+    Rattle as Rattle,
+    simulate_variational as simulate_variational,
+    VariationalMidpoint as VariationalMidpoint,
+)
 from ._vector_field import EquationsOfMotion as EquationsOfMotion
 
 __version__ = "0.1.0"

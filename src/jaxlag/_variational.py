@@ -22,18 +22,18 @@ the discrete counterpart of ``d/dt ∂L/∂q̇ − ∂L/∂q = Jᵀλ + Qⁿᶜ`
 
 Discrete Lagrangians (both second order, symmetric):
 
-* ``method="rattle"``: trapezoidal ``L_d = (h/2)[L(q_k, v, t_k) + L(q_{k+1}, v, t_{k+1})]``,
+* ``method=jl.Rattle()``: trapezoidal ``L_d = (h/2)[L(q_k, v, t_k) + L(q_{k+1}, v, t_{k+1})]``,
   ``v = (q_{k+1} − q_k)/h``. For ``L = ½ q̇ᵀMq̇ − V(q)`` with constant ``M`` this is exactly
   RATTLE (Störmer–Verlet with constraints): the positions are explicit given ``λ_k``, so each
   step solves only the ``m`` constraint equations for ``λ_k`` by Newton (SHAKE) and the velocity
   stage is one linear solve. For ``M(q)`` the position stage is a Newton solve in
   ``(q_{k+1}, λ_k)``.
   Needs ``L`` quadratic in ``q̇``.
-* ``method="variational"``: midpoint ``L_d = h L((q_k + q_{k+1})/2, v, t_k + h/2)``, for any
+* ``method=jl.VariationalMidpoint()``: midpoint ``L_d = h L((q_k + q_{k+1})/2, v, t_k + h/2)``, for any
   regular ``L(q, q̇, t)``; position stage by Newton in ``(q_{k+1}, λ_k)``, velocity stage by Newton
   in ``(q̇_{k+1}, μ_k)`` unless ``L`` is quadratic in ``q̇`` (then linear).
-* ``method="auto"`` (default): ``"rattle"`` when ``L`` is recognisably quadratic in ``q̇``, else
-  ``"variational"``.
+* ``method=None`` (default): :class:`Rattle` when ``L`` is recognisably quadratic in ``q̇``,
+  else :class:`VariationalMidpoint`.
 
 Higher order: ``order=4`` or ``6`` composes the symmetric step with Yoshida's coefficients (3 or
 7 substeps per step, some of negative size); the composition is still symplectic, symmetric and
@@ -53,13 +53,13 @@ exponentially long times; momenta of symmetries of ``L_d`` and ``f`` are conserv
 Which structure ``L`` has is read off its jaxpr (a static, conservative dependence analysis): a
 ``q̇``-independent ``∂²L/∂q̇²`` means quadratic, a ``(q, t)``-independent ``∂L/∂q̇`` means constant
 ``M`` (explicit positions). A Lagrangian written so that the analysis cannot see this (e.g.
-``jnp.linalg.norm(qd)**2``) only takes a slower path; with ``method="rattle"`` it is then checked
+``jnp.linalg.norm(qd)**2``) only takes a slower path; with ``method=jl.Rattle()`` it is then checked
 numerically at the initial state instead.
 """
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple, cast
+from typing import Any, ClassVar, NamedTuple, cast
 
 import diffrax
 import equinox as eqx
@@ -82,7 +82,33 @@ from ._custom_types import Args, Coordinates, RealScalarLike, Velocities
 from ._system import System
 from ._trajectory import Trajectory
 
-METHODS = ("auto", "rattle", "variational")
+
+class AbstractVariationalMethod(eqx.Module):
+    """The discrete Lagrangian of :func:`~jaxlag.simulate_variational`: :class:`~jaxlag.Rattle`
+    or :class:`~jaxlag.VariationalMidpoint` (``method=None`` picks one from the structure of
+    ``L``)."""
+
+    rule: ClassVar[str]
+
+
+class Rattle(AbstractVariationalMethod):
+    r"""Trapezoidal discrete Lagrangian
+    ``L_d = (h/2)[L(q_k, v, t_k) + L(q_{k+1}, v, t_{k+1})]``, ``v = (q_{k+1} − q_k)/h``: RATTLE
+    (Störmer–Verlet with constraints) for ``L = ½ q̇ᵀM(q)q̇ + b(q)·q̇ − V(q)``. Needs ``L``
+    quadratic in ``q̇`` (checked: statically from its jaxpr, else numerically at the initial
+    state). With constant ``M`` the positions are explicit and each step solves only the ``m``
+    constraint equations for ``λ_k``."""
+
+    rule: ClassVar[str] = "trapezoid"
+
+
+class VariationalMidpoint(AbstractVariationalMethod):
+    r"""Midpoint discrete Lagrangian ``L_d = h L((q_k + q_{k+1})/2, v, t_k + h/2)`` for any
+    regular ``L(q, q̇, t)``: the position stage is a Newton solve in ``(q_{k+1}, λ_k)``, the
+    velocity stage a Newton solve in ``(q̇_{k+1}, μ_k)`` (linear when ``L`` is quadratic in
+    ``q̇``)."""
+
+    rule: ClassVar[str] = "midpoint"
 
 
 # --------------------------------------------------------------------------- structure of L
@@ -522,7 +548,7 @@ def simulate_variational(
     t0: RealScalarLike = 0.0,
     args: Args = None,
     save_every: int = 1,
-    method: str = "auto",
+    method: AbstractVariationalMethod | None = None,
     order: int = 2,
     newton_rtol: float | None = None,
     newton_atol: float | None = None,
@@ -552,9 +578,10 @@ def simulate_variational(
       trajectory has ``num_steps // save_every + 1`` states including the initial one. Under
       reverse-mode differentiation each block of ``save_every`` steps is recomputed
       (checkpointed), so memory scales with the number of saves, not of steps.
-    - ``method``: ``"rattle"`` (trapezoidal discrete Lagrangian; ``L`` quadratic in ``q̇``),
-      ``"variational"`` (midpoint; any regular ``L``), or ``"auto"`` (``"rattle"`` when ``L``
-      is recognisably quadratic in ``q̇``).
+    - ``method``: :class:`~jaxlag.Rattle` (trapezoidal discrete Lagrangian; ``L`` quadratic in
+      ``q̇``), :class:`~jaxlag.VariationalMidpoint` (midpoint; any regular ``L``), or ``None``
+      (default: ``Rattle()`` when ``L`` is recognisably quadratic in ``q̇``, else
+      ``VariationalMidpoint()``).
     - ``order``: 2 (the plain step), 4 or 6: symmetric compositions of it (Yoshida's triple
       jump, and his 7-stage method) of 3 or 7 substeps per step, some of negative size; still
       symplectic, symmetric and constraint-preserving. ``stats["multipliers"]`` stay second
@@ -582,8 +609,16 @@ def simulate_variational(
     """
     if not isinstance(system, System):
         raise TypeError(f"system must be a jl.System; got {type(system).__name__}.")
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}; got {method!r}.")
+    if isinstance(method, str):
+        raise TypeError(
+            f"method={method!r}: simulate_variational's method is an object now: "
+            "method=jl.Rattle(), method=jl.VariationalMidpoint(), or None (the default: chosen "
+            "from the structure of L)."
+        )
+    if method is not None and not isinstance(method, AbstractVariationalMethod):
+        raise TypeError(
+            f"method must be jl.Rattle(), jl.VariationalMidpoint() or None; got {type(method).__name__}."
+        )
     if system.velocity_constraints is not None:
         raise NotImplementedError(
             "simulate_variational supports holonomic constraints only; velocity (Pfaffian, "
@@ -618,31 +653,31 @@ def simulate_variational(
         raise ValueError(f"dt must be positive; got {float(dt)}.")
     system.check(q0, qd0, t0, args)
     structure = lagrangian_structure(system, q0, qd0, t0, args)
-    if method == "auto":
-        method = "rattle" if structure.quadratic else "variational"
-    if method == "rattle" and not structure.quadratic:
+    if method is None:
+        method = Rattle() if structure.quadratic else VariationalMidpoint()
+    if isinstance(method, Rattle) and not structure.quadratic:
         # The static analysis could not prove it: check numerically at the initial state.
         deviation = _check_quadratic(system, q0, qd0, t0, args)
         if is_concrete(deviation):
             if not float(deviation) <= 1e-8:
                 raise ValueError(
-                    "method='rattle' needs a Lagrangian quadratic in q̇ (L = ½ q̇ᵀM(q)q̇ + "
+                    "method=jl.Rattle() needs a Lagrangian quadratic in q̇ (L = ½ q̇ᵀM(q)q̇ + "
                     "b(q)·q̇ − V(q)); this one is not (third difference in q̇ relative to L: "
-                    f"{float(deviation):.3g}). Use method='variational'."
+                    f"{float(deviation):.3g}). Use method=jl.VariationalMidpoint()."
                 )
         else:
             q0 = eqx.error_if(
                 q0,
                 ~(deviation <= 1e-8),
-                "jaxlag.simulate_variational: method='rattle' needs a Lagrangian quadratic in "
-                "q̇; use method='variational'.",
+                "jaxlag.simulate_variational: method=jl.Rattle() needs a Lagrangian quadratic "
+                "in q̇; use method=jl.VariationalMidpoint().",
             )
             q0 = cast(jax.Array, q0)  # error_if returns its input (typed as any pytree)
         structure = LagrangianStructure(True, False)
     constant_mass = structure.constant_mass and not _has_forces(system)
     default_tolerance = 1e-12 if q0.dtype == jnp.float64 else 1e-5
     scheme = _Scheme(
-        rule="trapezoid" if method == "rattle" else "midpoint",
+        rule=method.rule,
         quadratic=structure.quadratic,
         constant_mass=constant_mass,
         constrained=system.holonomic is not None,
