@@ -197,7 +197,7 @@ def _jaxlag_kernel_only(system, nsteps):
             False,
             None,
             "pallas",
-        ).q
+        )[0].q  # (trajectory, initial-state diagnostics)
 
     return run
 

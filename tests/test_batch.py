@@ -271,7 +271,8 @@ def test_batch_method_objects():
         ensemble = simulate_batch(
             PENDULUM, q0s, jnp.zeros(1), TS, method=jl.Ensemble(backend=backend), **options
         )
-        assert ensemble.failure is None  # the ensemble loop's Trajectory (vmap's has a record)
+        # The ensemble loop's Trajectory has vmap's per-member failure record.
+        np.testing.assert_array_equal(ensemble.failure.code, vmapped.failure.code)
         np.testing.assert_allclose(ensemble.q, vmapped.q, rtol=0, atol=1e-12)
     with pytest.raises(TypeError, match=r"method must be jl\.Vmap\(\), jl\.Ensemble\(\.\.\.\) or None"):
         simulate_batch(PENDULUM, q0s, jnp.zeros(1), TS, args=args, method="vmap")
@@ -343,3 +344,73 @@ def test_batch_takes_simulate_option_objects():
             checks=jl.Checks(constraint_tolerance=0.1),
         )
         np.testing.assert_allclose(loose.q, out.q, rtol=0, atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- solver/controller
+def harmonic(q, qd):
+    return 0.5 * qd[0] ** 2 - 0.5 * q[0] ** 2
+
+
+HARMONIC = jl.System(harmonic)
+ADAPTIVE = diffrax.PIDController(rtol=1e-8, atol=1e-8)
+NO_ESTIMATE = r"cannot be used with an adaptive step-size controller"
+FIX = (
+    r"Pass stepsize_controller=diffrax\.ConstantStepSize\(\) with a step dt0=\.\.\., or a solver "
+    r"with an error estimate, such as diffrax\.Tsit5\(\)"
+)
+
+
+def test_solver_without_error_estimate_needs_constant_steps_everywhere():
+    # Before: solver=jl.RK4() under the default PIDController had an error estimate of 0, so every
+    # step was accepted and grown ×10: 4 steps over [0, 10], |q − cos t| = 196, no error.
+    # diffrax.Euler() raised diffrax's RuntimeError "Cannot use adaptive step sizes with a solver
+    # that does not provide error estimates." from inside the trace, with no fix named.
+    ts = jnp.linspace(0.0, 10.0, 3)
+    q0, qd0 = jnp.array([1.0]), jnp.array([0.0])
+    states = jnp.ones((2, 1)), jnp.zeros((2, 1))
+    controllers = [None, ADAPTIVE, diffrax.ClipStepSizeController(ADAPTIVE)]
+    for solver, reason in [(jl.RK4(), "RK4 has no embedded method"), (diffrax.Euler(), "Euler returns no")]:
+        for controller in controllers:
+            options = dict(solver=solver, stepsize_controller=controller)
+            here = r"\(here the default, PIDController\)" if controller is None else r"\(here PIDController\)"
+            with pytest.raises(
+                ValueError, match=r"adaptive step-size controller " + here + ": " + reason + ".*" + FIX
+            ):
+                jl.simulate(HARMONIC, q0, qd0, ts, **options)
+            with pytest.raises(ValueError, match=NO_ESTIMATE):  # at trace time, inside jit
+                jax.jit(lambda q: jl.simulate(HARMONIC, q, qd0, ts, **options).q)(q0)
+            with pytest.raises(ValueError, match=NO_ESTIMATE):
+                jax.vmap(lambda q: jl.simulate(HARMONIC, q, qd0, ts, **options).q)(states[0])
+            for method in (jl.Vmap(), jl.Ensemble()):
+                with pytest.raises(ValueError, match=NO_ESTIMATE + ".*" + reason):
+                    jl.simulate_batch(HARMONIC, *states, ts, method=method, **options)
+    experiment = jl.Experiment(ts, jnp.cos(ts)[:, None], q0, qd0)
+    stiffness = jl.System(lambda q, qd, args: 0.5 * qd[0] ** 2 - 0.5 * args["k"] * q[0] ** 2)
+    with pytest.raises(ValueError, match=NO_ESTIMATE + ".*RK4 has no embedded method"):
+        jl.fit(stiffness, {"k": 1.1}, experiment, solver=jl.RK4())
+
+
+def test_solvers_with_an_error_estimate_or_constant_steps_are_accepted():
+    from jaxlag._solver.validation import solver_controller_message
+
+    accepted = [diffrax.Tsit5(), diffrax.Heun(), diffrax.Midpoint(), diffrax.Ralston(), diffrax.Bosh3()]
+    accepted += [diffrax.HalfSolver(jl.RK4()), diffrax.HalfSolver(diffrax.Euler())]
+    for solver in accepted:
+        assert solver_controller_message(solver, ADAPTIVE) is None, solver
+    for solver in (jl.RK4(), diffrax.Euler(), diffrax.SemiImplicitEuler()):
+        assert solver_controller_message(solver, ADAPTIVE) is not None
+        for controller in (diffrax.ConstantStepSize(), diffrax.StepTo(ts=jnp.linspace(0.0, 1.0, 3))):
+            assert solver_controller_message(solver, controller) is None
+    # What the messages suggest works, to the closed form q = cos t (RK4 at dt = 0.01: global
+    # error 4.5e-10 over [0, 10]; step doubling at rtol = atol = 1e-8: 1.4e-7, 142 steps).
+    ts = jnp.linspace(0.0, 10.0, 3)
+    constant = jl.simulate(
+        HARMONIC, jnp.array([1.0]), jnp.array([0.0]), ts, solver=jl.RK4(),
+        stepsize_controller=diffrax.ConstantStepSize(), dt0=0.01,
+    )  # fmt: skip
+    np.testing.assert_allclose(constant.q[:, 0], jnp.cos(ts), rtol=0, atol=1e-9)
+    halved = jl.simulate(
+        HARMONIC, jnp.array([1.0]), jnp.array([0.0]), ts, solver=diffrax.HalfSolver(jl.RK4()),
+        stepsize_controller=ADAPTIVE,
+    )  # fmt: skip
+    np.testing.assert_allclose(halved.q[:, 0], jnp.cos(ts), rtol=0, atol=1e-6)

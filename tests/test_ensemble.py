@@ -395,20 +395,29 @@ def test_bad_input_gets_a_clear_error():
     sphere = jl.systems.particle_on_sphere(unilateral=True)
     with pytest.raises(ValueError, match=r"unilateral.*method=jl\.Vmap\(\)"):
         jl.simulate_batch(sphere, jnp.array([[2.0, 0.1]]), jnp.zeros((1, 2)), ts, method=jl.Ensemble())
-    with pytest.raises(ValueError, match="no error estimate"):
+    with pytest.raises(ValueError, match=r"RK4 has no embedded method.*ConstantStepSize\(\) with a step dt0"):
         jl.simulate_batch(DOUBLE, q0, qd0, ts, method=jl.Ensemble(), solver=jl.RK4())
     with pytest.raises(ValueError, match="need 1000 steps, more than max_steps=10"):
         jl.simulate_batch(
             DOUBLE, q0, qd0, ts, method=jl.Ensemble(), stepsize_controller=CONSTANT, dt0=1e-3, max_steps=10
         )
     ones = jnp.ones((2, 1))
-    with pytest.raises(Exception, match="max_steps=5"):
+    with pytest.raises(jl.SimulationError, match=r"Member \[0\]: The simulation reached max_steps = 5 steps"):
         jl.simulate_batch(OSCILLATOR, ones, ones, ts, args={"w": 1.0}, method=jl.Ensemble(), max_steps=5)
     partial = jl.simulate_batch(
         OSCILLATOR, ones, ones, ts, args={"w": 1.0}, method=jl.Ensemble(), max_steps=5, throw=False
     )
     assert not jnp.any(partial.result == diffrax.RESULTS.successful)
     assert jnp.all(partial.stats["num_steps"] == 5)
+    # Saves an unfinished member did not reach are inf, as diffrax and method=jl.Vmap() give them
+    # (they were 0.0). The start is always reached.
+    vmapped = jl.simulate_batch(
+        OSCILLATOR, ones, ones, ts, args={"w": 1.0}, method=jl.Vmap(), max_steps=5, throw=False
+    )
+    for traj in (partial, vmapped):
+        assert np.all(np.isinf(traj.q[:, 1:])) and np.all(np.isinf(traj.qd[:, 1:]))
+        np.testing.assert_array_equal(traj.q[:, 0], ones)
+        np.testing.assert_array_equal(traj.failure.code, [2, 2])  # max_steps
     with pytest.raises(TypeError, match=r"method must be jl\.Vmap\(\), jl\.Ensemble\(\.\.\.\) or None"):
         jl.simulate_batch(DOUBLE, q0, qd0, ts, method="loop")
 
@@ -448,3 +457,108 @@ def test_lanewise_equations_equal_vmap_for_a_nine_link_chain():
 
     for got, expected in zip(by_columns(q, qd), jax.vmap(one)(q, qd)):
         np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- failed members
+
+
+def quartic(q, qd, args):
+    # V = q²/2 − a q⁴. a = 0: the harmonic oscillator, q = cos t from (1, 0). a = 1: from q = 1,
+    # q̈ = −q + 4q³ ≥ 3 and q reaches infinity in finite time (t ≈ 1.001).
+    return 0.5 * qd[0] ** 2 - 0.5 * q[0] ** 2 + args["a"] * q[0] ** 4
+
+
+QUARTIC = jl.System(quartic)
+TS_BLOW = jnp.linspace(0.0, 3.0, 4)
+BLOW = dict(args={"a": jnp.array([1.0, 0.0])}, args_axes={"a": 0})
+ONE, REST = jnp.ones((2, 1)), jnp.zeros((2, 1))
+
+
+def _assert_blown_member_reported(traj):
+    """Member 0 blew up between t = 1 and 2, member 1 is cos t (errors, Tsit5: 1.3e-14 at
+    dt = 0.01, 3.8e-11 at the default rtol = atol = 1e-10)."""
+    np.testing.assert_array_equal(np.ravel(traj.result == diffrax.RESULTS.successful), [False, True])
+    assert np.all(np.isfinite(traj.q[0, :2])) and np.all(np.isinf(traj.q[0, 2:]))
+    assert np.all(np.isinf(traj.qd[0, 2:]))
+    np.testing.assert_allclose(traj.q[1, :, 0], np.cos(TS_BLOW), rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("backend", ["xla", "pallas-interpret"])
+def test_member_that_blows_up_with_constant_steps_fails(backend):
+    # Before: the blown-up member's saves were NaN with result "successful", and throw=True
+    # raised nothing. Now it fails (code 1, non-finite) like method=jl.Vmap(), with the same
+    # saves (inf from the first save it did not reach), on both backends.
+    options = dict(BLOW, stepsize_controller=CONSTANT, dt0=0.01, throw=False)
+    traj = jl.simulate_batch(QUARTIC, ONE, REST, TS_BLOW, method=jl.Ensemble(backend), **options)
+    vmapped = jl.simulate_batch(QUARTIC, ONE, REST, TS_BLOW, method=jl.Vmap(), **options)
+    for run in (traj, vmapped):
+        _assert_blown_member_reported(run)
+        np.testing.assert_array_equal(run.failure.code, [1, 0])
+    # Reported at its last finite save (vmap: at the last finite step, t = 1.01).
+    assert float(traj.failure.t[0]) == 1.0 and float(traj.failure.dt[0]) == pytest.approx(0.01)
+    np.testing.assert_array_equal(traj.failure.q[0], traj.q[0, 1])
+    if backend == "xla":
+        with pytest.raises(
+            jl.SimulationError,
+            match=r"1 of 2 batch members failed \(first: member \[0\]\)\. Member \[0\]: The "
+            r"equations of motion became non-finite \(NaN or inf\) at t = 1 ",
+        ):
+            jl.simulate_batch(
+                QUARTIC, ONE, REST, TS_BLOW, method=jl.Ensemble(backend), **{**options, "throw": True}
+            )
+
+
+def test_member_that_blows_up_with_adaptive_steps_fails_like_vmap():
+    # Adaptive steps shrink towards the singularity until they reach round-off: the member stops
+    # there (code 5, the step size collapsed) instead of spinning until max_steps, at the time
+    # jl.Vmap() reports (t = 1.0010774, 10 digits), the other member unaffected.
+    traj = jl.simulate_batch(QUARTIC, ONE, REST, TS_BLOW, method=jl.Ensemble(), throw=False, **BLOW)
+    vmapped = jl.simulate_batch(QUARTIC, ONE, REST, TS_BLOW, method=jl.Vmap(), throw=False, **BLOW)
+    for run in (traj, vmapped):
+        _assert_blown_member_reported(run)
+        np.testing.assert_array_equal(run.failure.code, [5, 0])
+    np.testing.assert_allclose(traj.failure.t, vmapped.failure.t, rtol=1e-9)
+    assert int(traj.stats["num_steps"][0]) < 2 * int(vmapped.stats["num_steps"][0])
+
+
+def test_failed_members_raise_under_jit_and_are_recorded_under_vmap():
+    def final(a, throw):
+        args = {"a": a}
+        traj = jl.simulate_batch(
+            QUARTIC, ONE, REST, TS_BLOW, args=args, args_axes={"a": 0}, method=jl.Ensemble(),
+            stepsize_controller=CONSTANT, dt0=0.01, throw=throw,
+        )  # fmt: skip
+        return traj.q[:, -1, 0], traj.failure.code
+
+    jitted = jax.jit(final, static_argnums=1)
+    q1, code = jitted(jnp.array([0.0, 0.0]), True)
+    np.testing.assert_allclose(q1, np.cos(3.0), rtol=0, atol=1e-12)
+    with pytest.raises(Exception, match="equations of motion became non-finite"):
+        jax.block_until_ready(jitted(jnp.array([0.0, 1.0]), True))
+    _, codes = jax.vmap(lambda a: final(a, False))(jnp.array([[1.0, 0.0], [0.0, 0.0]]))
+    np.testing.assert_array_equal(codes, [[1, 0], [0, 0]])
+
+
+def test_float32_batches_use_float32_defaults():
+    # A float32 pendulum 4e-5 off its rod (round-off of float32 inputs is ~1e-7; simulate
+    # accepts up to √ε = 3.5e-4). The ensemble uses simulate's float32 defaults: constraint
+    # tolerance √ε and rtol = atol = 1.2e-5 (before: rtol = atol = 1e-10, below float32
+    # round-off: ~2,900 steps for 1 s instead of ~10).
+    th = jnp.array([0.3, 1.1])
+    q0 = jnp.stack([jnp.sin(th), -jnp.cos(th)], 1) * (1 + 2e-5)
+    qd0 = 0.7 * jnp.stack([jnp.cos(th), jnp.sin(th)], 1)
+    ts = jnp.linspace(0.0, 1.0, 3)
+    q32, qd32, ts32 = (x.astype(jnp.float32) for x in (q0, qd0, ts))
+    loose = jl.Checks(constraint_tolerance=1e-4)  # float64: the same (slightly off) state
+    options = dict(args={"g": 9.81, "l": 1.0}, method=jl.Ensemble())
+    reference = jl.simulate_batch(PENDULUM_XY, q0, qd0, ts, checks=loose, **options)
+    traj = jl.simulate_batch(PENDULUM_XY, q32, qd32, ts32, **options)
+    assert traj.q.dtype == jnp.float32
+    assert np.all(traj.stats["num_steps"] < 40)  # 10 and 13 measured (jl.Vmap(): 8 and 13)
+    # rtol = atol = 1.2e-5 per unit time over 1 s: 4.4e-6 measured; 5e-5 allows ~4 rtol.
+    np.testing.assert_allclose(traj.q, reference.q, rtol=0, atol=5e-5)
+    # 1% off (|f| = 0.02) is refused, eagerly, naming the member (as jl.Vmap() does).
+    with pytest.raises(
+        ValueError, match=r"2 of 2 batch members failed \(first: member \[0\]\).*off the constraint"
+    ):
+        jl.simulate_batch(PENDULUM_XY, q32 * 1.01, qd32, ts32, **options)

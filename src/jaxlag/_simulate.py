@@ -41,6 +41,7 @@ from ._stabilization import (
     wrap_for_projection,
 )
 from ._solver.step_once import StepOnce
+from ._solver.validation import check_solver_controller
 from ._system import System
 from ._trajectory import Trajectory
 
@@ -374,7 +375,7 @@ class _Run(AbstractPushingRun):
     def __call__(self, inputs: SimulationInputs, adjoint):
         i = inputs
         if self.segmented:
-            ts_out, q, qd, active, log, failure = solve_segments(
+            ts_out, q, qd, active, log, failure, stats = solve_segments(
                 i.system,
                 i.q0,
                 i.qd0,
@@ -397,7 +398,7 @@ class _Run(AbstractPushingRun):
                 self.tolerance,
             )
             return Trajectory.from_states(
-                i.system, ts_out, q, qd, i.args, active=active, events=log, failure=failure
+                i.system, ts_out, q, qd, i.args, stats=stats, active=active, events=log, failure=failure
             )
         return _solve(
             i.system,
@@ -467,7 +468,9 @@ def simulate(
     Every diffrax option passes through unchanged: ``solver`` (default ``diffrax.Tsit5()``),
     ``stepsize_controller`` (default ``diffrax.PIDController(rtol=1e-10, atol=1e-10)``, in
     float32 ``1.2e-5``; with a
-    ``ConstantStepSize`` give ``dt0``), ``dt0`` (default: chosen by the controller), ``saveat``,
+    ``ConstantStepSize`` give ``dt0``; a solver without an error estimate, such as ``jl.RK4()``
+    or ``diffrax.Euler()``, needs one: with an adaptive controller it is a ``ValueError``),
+    ``dt0`` (default: chosen by the controller), ``saveat``,
     ``max_steps``, ``adjoint``, ``event``, ``throw`` and ``progress_meter``. The default adjoint,
     :class:`~jaxlag.ForwardSensitivities`, gives ``jax.grad`` by forward sensitivities when at most
     10 scalars are differentiated and by diffrax's ``RecursiveCheckpointAdjoint`` otherwise
@@ -491,10 +494,13 @@ def simulate(
       ``jl.Events(jl.Event(f), max_segments=16)``; a single ``jl.Event`` or a sequence of them
       is taken as ``jl.Events(*events)``.
     - If the system has ``unilateral`` constraints or there are event conditions, the motion is
-      integrated in at most ``events.max_segments`` segments between switches (default 8),
-      each event located by ``events.root_finder`` (default
-      ``optimistix.Newton(rtol=1e-13, atol=1e-13)``); the returned trajectory has ``events``
-      (an :class:`~jaxlag.EventLog`) and ``active`` set. This mode needs ``ts``.
+      integrated in at most ``events.max_segments`` segments between switches (default 8;
+      too few is a ``SimulationError`` that says how many are needed), each event located by
+      ``events.root_finder`` (default ``optimistix.Newton(rtol=1e-13, atol=1e-13)``, ``√ε``
+      in lower precision); the returned trajectory has ``events`` (an
+      :class:`~jaxlag.EventLog`), ``active`` and ``stats`` (summed over the segments) set.
+      A crossing is a sign change after ``t0`` (see :class:`~jaxlag.Event`). This mode needs
+      ``ts``.
 
     Returns a :class:`~jaxlag.Trajectory`.
     """
@@ -526,9 +532,11 @@ def simulate(
     t0, t1 = _as_time(t0, q0.dtype), _as_time(t1, q0.dtype)
     if solver is None:
         solver = diffrax.Tsit5()
+    default_controller = stepsize_controller is None
     if stepsize_controller is None:
         tol = default_solver_tolerance(q0.dtype)
         stepsize_controller = diffrax.PIDController(rtol=tol, atol=tol)
+    check_solver_controller(solver, stepsize_controller, default_controller=default_controller)
     constraint_tolerance = checks.tolerance(q0.dtype)
     if adjoint is None:
         adjoint = ForwardSensitivities()

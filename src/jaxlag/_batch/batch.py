@@ -62,6 +62,7 @@ from .ensemble_entry import ensemble_by_default as _ensemble_by_default
 from .ensemble_entry import run_ensemble
 from .methods import AbstractBatchMethod, Ensemble, Vmap
 from .._simulate import save_times_message, as_projection, simulate
+from .._solver.validation import check_solver_controller
 from .._stabilization import Baumgarte, Projection
 from .._system import System
 from .._trajectory import Trajectory
@@ -280,6 +281,7 @@ def simulate_batch(
     if not sizes:
         raise ValueError(
             "Nothing to batch: give q0 or qd0 of shape (B, n), or mark args leaves with args_axes."
+            + checking.unmarked_batch_hint(args, args_axes)
         )
     if len(set(sizes.values())) != 1:
         raise ValueError(f"Inconsistent batch sizes along the leading axis: {sizes}.")
@@ -289,6 +291,13 @@ def simulate_batch(
 
     if method is not None and not isinstance(method, AbstractBatchMethod):
         raise TypeError(f"method must be jl.Vmap(), jl.Ensemble(...) or None; got {method!r}.")
+    if solver is not None:  # the default, diffrax.Tsit5(), has an error estimate
+        controller = (
+            stepsize_controller
+            if stepsize_controller is not None
+            else diffrax.PIDController(rtol=1e-10, atol=1e-10)
+        )
+        check_solver_controller(solver, controller, default_controller=stepsize_controller is None)
     if not isinstance(checks, Checks):
         raise TypeError(f"checks must be a jl.Checks; got {type(checks).__name__}.")
     options = dict(
@@ -350,7 +359,7 @@ def simulate_batch(
         )
         if pad:
             out = jax.tree.map(lambda x: x[:size] if isinstance(x, jax.Array) else x, out)
-        return out
+        return _raise_for_failed_members(out, throw, system, batched_args, shared_args)
 
     # Members fail on their own (traj.failure per member); the batch raises once, below, naming
     # the failed members, or not at all with throw=False.
@@ -386,15 +395,25 @@ def simulate_batch(
         )
     if initial_check is not None:
         checking.raise_for_initial_states(system, diagnostics, args, initial_check[1])
-    if throw and out.failure is not None:
-        if not is_concrete(out.failure):
-            out = eqx.tree_at(lambda tr: tr.q, out, failures.error_if_failed(out.failure, out.q))
-        elif out.failure.code.is_fully_addressable:
+    return _raise_for_failed_members(out, throw, system, batched_args, shared_args)
+
+
+def _raise_for_failed_members(out: Trajectory, throw: bool, system, batched_args, shared_args) -> Trajectory:
+    """``throw=True``: raise :class:`~jaxlag.SimulationError` naming the first failed member
+    (eagerly, with its numbers and diagnosis), or compile the check in under a transformation."""
+    if not throw or out.failure is None:
+        return out
+    if not is_concrete(out.failure):
+        return eqx.tree_at(lambda tr: tr.q, out, failures.error_if_failed(out.failure, out.q))
+    if out.failure.code.is_fully_addressable:
+        if is_concrete((batched_args, shared_args)):
             member_args = _member_args(batched_args, shared_args)
             failures.raise_if_failed(out.failure, system, member_args, args_batched=True)
-        else:
-            # Several hosts: each process can read only its own rows; it raises for those.
-            _raise_for_local_members(out.failure)
+        else:  # a concrete record of traced parameters (jax.jacfwd): no diagnosis at the state
+            failures.raise_if_failed(out.failure)
+    else:
+        # Several hosts: each process can read only its own rows; it raises for those.
+        _raise_for_local_members(out.failure)
     return out
 
 

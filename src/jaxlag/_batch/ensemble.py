@@ -28,7 +28,12 @@ mode stores one state per step and recomputes the stages.
 the next step is ``h · clip(safety · ε₁^{-β₁/p} ε₀^{-β₂/p} ε₋₁^{-β₃/p}, factormin, factormax)``
 with ``β = (pcoeff + icoeff + dcoeff, −(pcoeff + 2 dcoeff), dcoeff)`` and ``p`` the solver's error
 order (after a step clipped onto a save time the unclipped proposal is kept). Finished members
-are masked; the loop stops when every member has reached its last save time. The loop is
+are masked; the loop stops when every member has reached its last save time or failed: a member
+whose step is rejected at round-off size (``≤ 64 ε max(|t|, t₁ − t₀)``) stops there, as
+``jl.simulate``'s guard stops diffrax (non-finite trial state: code 1; finite: the step size
+collapsed, code 5). :func:`member_failures` turns how each member ended into the
+:class:`~jaxlag._errors.Failure` record of ``jl.simulate`` (a non-finite save also fails the
+member: constant steps cannot shrink), with the unreached saves ``inf``. The loop is
 ``equinox.internal.while_loop``: ``kind="checkpointed"`` (reverse mode, memory ``O(log steps)``)
 with the default ``adjoint=diffrax.RecursiveCheckpointAdjoint()``, ``kind="lax"`` (forward mode)
 with ``adjoint=diffrax.ForwardMode()``, as in diffrax. The saved states are the loop's write-only
@@ -52,7 +57,10 @@ import optimistix as optx
 from diffrax._local_interpolation import ThirdOrderHermitePolynomialInterpolation
 from jaxtyping import PyTree
 
-from .._checks import validate_initial_state
+from .. import _errors as failures
+from .._checks import initial_state_diagnostics, validate_initial_state
+from .._solver.guard import _ULPS
+from .._solver.validation import solver_controller_message
 from .._mechanics.constant_mass import with_constant_mass
 from .._simulate import EquationsOfMotion
 from .._stabilization import Baumgarte, Projection
@@ -141,7 +149,7 @@ class EnsembleSettings(eqx.Module):
     dtmax: Any = None
     max_steps: int = eqx.field(static=True, default=2**16)
     loop_kind: str = eqx.field(static=True, default="checkpointed")
-    throw: bool = eqx.field(static=True, default=True)
+    throw: bool = eqx.field(static=True, default=True)  # not read by the loop: see member_failures
 
 
 def _static_float(value, name):
@@ -183,12 +191,9 @@ def make_settings(solver, stepsize_controller, max_steps, adjoint, throw) -> Ens
             "simulate_batch(..., method=jl.Vmap())."
         )
     controller = stepsize_controller
-    if not np.any(np.asarray(tableau.b_error) != 0):
-        raise ValueError(
-            f"{type(solver).__name__} has no error estimate (its tableau's b_error is zero): use "
-            "diffrax.ConstantStepSize() with dt0, or an embedded method (diffrax.Tsit5(), "
-            "diffrax.Dopri5())."
-        )
+    text = solver_controller_message(solver, controller)
+    if text is not None:
+        raise ValueError(text)
     if controller.norm is not optx.rms_norm:
         raise ValueError(
             "The ensemble integrator uses diffrax's default RMS error norm; a custom "
@@ -423,13 +428,21 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
         at_dtmin=jnp.zeros((batch,), bool),
         accepted=zero,
         rejected=zero,
+        failed=jnp.zeros((batch,), bool),
+        nonfinite=jnp.zeros((batch,), bool),
+        last_dt=dt,
     )
+    # A rejected step of round-off size ends the member (as jaxlag's FiniteStepGuard ends a
+    # diffrax solve): non-finite if its trial state was, else a collapsed step size.
+    scale = jnp.max(jnp.abs(ts), axis=1)
+    scale = jnp.maximum(scale, ts[:, -1] - ts[:, 0])
+    tiny_step = _ULPS * float(jnp.finfo(dtype).eps) * scale
 
     def cond(c):
-        return jnp.any(c["k"] < num_saves)
+        return jnp.any((c["k"] < num_saves) & ~c["failed"])
 
     def body(c):
-        running = c["k"] < num_saves
+        running = (c["k"] < num_saves) & ~c["failed"]
         target = ts[members, jnp.minimum(c["k"], num_saves - 1)]
         t, y = c["t"], c["y"]
         remaining = target - t
@@ -473,6 +486,7 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
             dt_next = jnp.maximum(dt_next, settings.dtmin)
         inv = jnp.where((inv == 0) | jnp.isinf(inv), 1.0, inv)
         accept = keep & running
+        fail = running & ~keep & (h <= tiny_step)
         y1 = field.project(t1, y1)
         save = accept & clipped
         # Every member writes every iteration (one batched scatter), those not saving into the
@@ -493,6 +507,9 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
             at_dtmin=jnp.where(running, at_dtmin, c["at_dtmin"]),
             accepted=c["accepted"] + accept.astype(jnp.int32),
             rejected=c["rejected"] + (running & ~keep).astype(jnp.int32),
+            failed=c["failed"] | fail,
+            nonfinite=c["nonfinite"] | (fail & ~finite),
+            last_dt=jnp.where(running, jax.lax.stop_gradient(h), c["last_dt"]),
         )
         return out
 
@@ -503,14 +520,19 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
         )
     else:
         final = eqxi.while_loop(cond, body, init, max_steps=settings.max_steps, kind="lax")
-    done = final["k"] >= num_saves
     saved = tuple(jnp.moveaxis(s[:, 1:num_saves], 1, 0) for s in final["saves"])
     stats = {
         "num_steps": final["accepted"] + final["rejected"],
         "num_accepted_steps": final["accepted"],
         "num_rejected_steps": final["rejected"],
     }
-    return saved, stats, done
+    code = jnp.where(
+        final["failed"],
+        jnp.where(final["nonfinite"], failures.NONFINITE, failures.COLLAPSED),
+        jnp.where(final["k"] >= num_saves, failures.NONE, failures.MAX_STEPS),
+    )
+    record = LoopRecord(code.astype(jnp.int32), final["k"] - 1, final["t"], final["last_dt"], *final["y"])
+    return saved, stats, jax.lax.stop_gradient(record)
 
 
 # --------------------------------------------------------------------------------------------
@@ -519,23 +541,32 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
 
 
 def ensemble_problem(system, q0, qd0, ts, member_args, shared_args, baumgarte, projection, check, tolerance):
-    """Checked initial states and the :class:`BatchedField` of a batch (inside ``jit``)."""
+    """Checked initial states and the :class:`BatchedField` of a batch (inside ``jit``):
+    ``(field, (q0, q̇0), diagnostics)``. ``check``: ``True`` compiles the initial-state check in
+    (static message), ``"host"`` returns every member's diagnostics for the host to raise with
+    the numbers and the member (:func:`~jaxlag._checks.raise_for_initial_states`; else
+    ``diagnostics`` is ``None``), ``False`` skips it."""
 
     def prepare(q, qd, t, member):
         args = eqx.combine(member, shared_args)
         system.check(q, qd, t, args)
-        if check:
+        diagnostics = None
+        if check == "host":
+            diagnostics = initial_state_diagnostics(system, q, qd, t, args, tolerance)
+        elif check:
             q, qd = validate_initial_state(system, q, qd, t, args, tolerance)
         fast = with_constant_mass(system, q, qd, t, args)
-        return q, qd, fast.constant_mass
+        return q, qd, fast.constant_mass, diagnostics
 
-    q0, qd0, constant_mass = eqx.filter_vmap(prepare)(q0, qd0, ts[:, 0], member_args)
+    q0, qd0, constant_mass, diagnostics = eqx.filter_vmap(prepare)(q0, qd0, ts[:, 0], member_args)
     field = BatchedField(system, baumgarte, projection, member_args, shared_args, constant_mass)
-    return field, (q0, qd0)
+    return field, (q0, qd0), diagnostics
 
 
 def integrate_ensemble(field, settings, ts, y0, dt0, grid=None):
-    """Run the loop; returns ``(saved (q, q̇) each (T−1, B, n), stats, done (B,))``.
+    """Run the loop; returns ``(saved (q, q̇) each (T−1, B, n), stats, record)``: ``record``
+    the adaptive loop's :class:`LoopRecord`, ``None`` for constant steps (every member runs to
+    its end; :func:`member_failures` finds the non-finite ones).
 
     ``ts`` (B, T), the first column being the start times; ``grid = (m, inner, uniform)`` for
     constant steps: ``m`` (B, T−1) steps per save interval (see :func:`constant_grid`), ``inner``
@@ -546,20 +577,94 @@ def integrate_ensemble(field, settings, ts, y0, dt0, grid=None):
     if grid is None:
         raise ValueError("integrate_ensemble needs grid=(m, inner, uniform) for constant steps.")
     steps_per_interval, inner, uniform = grid[:3]
-    return constant_loop(field, settings, ts, y0, steps_per_interval, inner, uniform)
+    saved, stats, _ = constant_loop(field, settings, ts, y0, steps_per_interval, inner, uniform)
+    return saved, stats, None
 
 
-def check_finished(done, q, settings):
-    """Raise (also under ``jit``) when members did not finish within ``max_steps``."""
-    if not settings.throw:
-        return q
-    return eqx.error_if(
-        q,
-        ~jnp.all(done),
-        f"simulate_batch(method=jl.Ensemble()): some members did not reach their last save time "
-        f"within max_steps={settings.max_steps} loop iterations; increase max_steps (or loosen "
-        "rtol/atol). Pass throw=False to get the partial result with traj.result per member.",
+class LoopRecord(eqx.Module):
+    """How the adaptive loop ended for each member (leading axis B): ``code`` (the results
+    enumeration of :mod:`jaxlag._errors`), ``reached`` (save columns written, start excluded),
+    ``t`` (time reached), ``dt`` (last step tried) and ``q``, ``qd`` (last accepted state)."""
+
+    code: Any
+    reached: Any
+    t: Any
+    dt: Any
+    q: Any
+    qd: Any
+
+
+def _result_of(code):
+    """The diffrax result of one member (the guard of ``jl.simulate`` reports a non-finite
+    or collapsed step as ``dt_min_reached``)."""
+    results = diffrax.RESULTS
+    stopped = results.where(code == failures.MAX_STEPS, results.max_steps_reached, results.dt_min_reached)
+    return results.where(code == failures.NONE, results.successful, stopped)
+
+
+def member_failures(ts, y0, saved, stats, record, steps_per_interval, max_steps):
+    """Each member's :class:`~jaxlag._errors.Failure` record, its diffrax result and its saves
+    with the unreached ones set to ``inf`` (diffrax's and ``jl.Vmap()``'s convention).
+
+    ``saved`` (q, q̇) each (T−1, B, n); ``record`` the adaptive loop's :class:`LoopRecord`, or
+    ``None`` for constant steps (every save is reached), with ``steps_per_interval`` (B, T−1).
+    Either way a member whose saved state is non-finite failed there (code 1, non-finite): a
+    constant step cannot be shrunk, and the Pallas kernel and the constant-step loop do not stop
+    a member whose state became NaN. It is reported at its last finite save (``t``, ``q``, ``q̇``
+    there; ``dt`` the step of the interval that blew up). Works for every backend: it reads the
+    saves only."""
+    q_saved, qd_saved = saved
+    intervals, batch = q_saved.shape[:2]
+    members = jnp.arange(batch)
+    if record is None:
+        h = jnp.diff(ts, axis=1) / jnp.asarray(steps_per_interval, ts.dtype)  # (B, T-1)
+        record = LoopRecord(
+            jnp.full((batch,), failures.NONE, jnp.int32),
+            jnp.full((batch,), intervals, jnp.int32),
+            ts[:, -1],
+            h[:, -1],
+            q_saved[-1],
+            qd_saved[-1],
+        )
+    else:
+        h = None
+    saved = jax.lax.stop_gradient(saved)
+    column = jnp.arange(intervals)[:, None]  # (T-1, 1)
+    finite = jnp.all(jnp.isfinite(saved[0]), axis=-1) & jnp.all(jnp.isfinite(saved[1]), axis=-1)
+    bad = ~finite & (column < record.reached[None, :])  # (T-1, B)
+    first = jnp.argmax(bad, axis=0)
+    late = (record.code == failures.NONE) & jnp.any(bad, axis=0)
+    before = jnp.maximum(first - 1, 0)
+
+    def last_good(saves, start):
+        return jnp.where((first > 0)[:, None], saves[before, members], start)
+
+    y0 = jax.lax.stop_gradient(y0)
+    dt_late = record.dt if h is None else h[members, first]
+    record = LoopRecord(
+        jnp.where(late, failures.NONFINITE, record.code),
+        jnp.where(late, first, record.reached),
+        jnp.where(late, ts[members, first], record.t),
+        jnp.where(late, dt_late, record.dt),
+        jnp.where(late[:, None], last_good(saved[0], y0[0]), record.q),
+        jnp.where(late[:, None], last_good(saved[1], y0[1]), record.qd),
     )
+    unreached = (column >= record.reached[None, :])[:, :, None]
+    q_out, qd_out = (jnp.where(unreached, jnp.inf, x) for x in (q_saved, qd_saved))
+    result = jax.vmap(_result_of)(record.code)
+    failure = failures.Failure(
+        code=record.code,
+        t=record.t,
+        dt=record.dt,
+        q=record.q,
+        qd=record.qd,
+        t0=ts[:, 0],
+        t1=ts[:, -1],
+        num_steps=jnp.asarray(stats["num_steps"], jnp.int32),
+        result=jnp.asarray(result._value, jnp.int32),
+        max_steps=max_steps,
+    )
+    return (q_out, qd_out), failure, result
 
 
 def as_member_times(ts, batch, dtype):

@@ -17,15 +17,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _checks as checking
 from .. import _compile as compilation
 from .._misc import is_concrete
+from .._tolerances import default_solver_tolerance
 from .ensemble import (
     as_member_times,
-    check_finished,
     constant_grid,
     ensemble_problem,
     integrate_ensemble,
     make_settings,
+    member_failures,
 )
 from .._events import as_events
 from .pallas import integrate_pallas
@@ -34,15 +36,16 @@ from .._trajectory import Trajectory
 _VMAP = "Use simulate_batch(..., method=jl.Vmap()) (jax.vmap of jl.simulate), which supports it."
 
 
-def _options(options: dict) -> dict:
+def _options(options: dict, dtype=np.float64) -> dict:
     """The simulate options of :func:`~jaxlag.simulate_batch` (a dict by ``simulate``'s keyword
-    names: ``solver``, ``stepsize_controller``, ``checks``, ``events``, ...) with the ensemble
-    loop's default solver and controller filled in."""
+    names: ``solver``, ``stepsize_controller``, ``checks``, ``events``, ...) with ``simulate``'s
+    default solver and controller filled in (``rtol = atol`` of the state's ``dtype``)."""
     options = dict(options)
     if options["solver"] is None:
         options["solver"] = diffrax.Tsit5()
     if options["stepsize_controller"] is None:
-        options["stepsize_controller"] = diffrax.PIDController(rtol=1e-10, atol=1e-10)
+        tol = default_solver_tolerance(dtype)
+        options["stepsize_controller"] = diffrax.PIDController(rtol=tol, atol=tol)
     return options
 
 
@@ -170,15 +173,19 @@ def _run_impl(
     out_sharding,
     backend,
 ):
-    field, y0 = ensemble_problem(
+    field, y0, diagnostics = ensemble_problem(
         system, q0, qd0, ts, batched_args, shared_args, baumgarte, projection, check, tolerance
     )
     if backend in ("pallas", "pallas-interpret"):
-        saved, stats, done = integrate_pallas(
+        saved, stats, _ = integrate_pallas(
             field, settings, ts, y0, grid, interpret=backend == "pallas-interpret"
         )
+        record = None
     else:
-        saved, stats, done = integrate_ensemble(field, settings, ts, y0, dt0, grid)
+        saved, stats, record = integrate_ensemble(field, settings, ts, y0, dt0, grid)
+    saved, failure, result = member_failures(
+        ts, y0, saved, stats, record, None if grid is None else grid[0], settings.max_steps
+    )
     q, qd = (jnp.moveaxis(x, 0, 1) for x in saved)  # (B, T-1, n)
     if keep_first:
         q = jnp.concatenate([y0[0][:, None], q], axis=1)
@@ -186,12 +193,8 @@ def _run_impl(
         t = ts
     else:
         t = ts[:, 1:]
-    q = check_finished(done, q, settings)
     batch = q.shape[0]
     stats = {**stats, "max_steps": jnp.full((batch,), settings.max_steps, jnp.int32)}
-    result = jax.vmap(
-        lambda d: diffrax.RESULTS.where(d, diffrax.RESULTS.successful, diffrax.RESULTS.max_steps_reached)
-    )(done)
     args = _broadcast_members(shared_args, batch)
     args = eqx.combine(batched_args, args)
     system_arrays, system_static = eqx.partition(system, eqx.is_array)
@@ -206,7 +209,7 @@ def _run_impl(
         system_arrays,
         active=None,
         events=None,
-        failure=None,
+        failure=failure,
         system_static=system_static,
     )
     if out_sharding is not None:
@@ -218,7 +221,7 @@ def _run_impl(
             ),
             out,
         )
-    return out
+    return out, diagnostics
 
 
 _run = compilation.filter_jit(_run_impl)
@@ -243,14 +246,12 @@ def run_ensemble(
     system, q0, qd0, ts, batched_args, shared_args, batch, options: dict, out_sharding, backend
 ) -> Trajectory:
     """``simulate_batch(..., method=jl.Ensemble(backend))`` after the batch inputs have been
-    prepared; ``options``: the simulate options, ``projection`` already checked."""
-    options = _options(options)
+    prepared; ``options``: the simulate options, ``projection`` already checked. Failed
+    members are recorded in ``Trajectory.failure`` (``simulate_batch`` raises for them)."""
+    options = _options(options, q0.dtype)
+    # throw=False: one program for both; simulate_batch raises from the failure records.
     settings = make_settings(
-        options["solver"],
-        options["stepsize_controller"],
-        options["max_steps"],
-        options["adjoint"],
-        options["throw"],
+        options["solver"], options["stepsize_controller"], options["max_steps"], options["adjoint"], False
     )
     reason = unsupported(system, ts, options)
     if reason is not None:
@@ -294,6 +295,12 @@ def run_ensemble(
         )
     dt0 = options["dt0"]
     dt0 = None if dt0 is None else jnp.asarray(dt0, q0.dtype)
+    tolerance = options["checks"].tolerance(q0.dtype)
+    check = bool(options["checks"].initial_state)
+    if check and jax.process_count() == 1 and is_concrete((q0, qd0, times, batched_args, shared_args)):
+        # Concrete inputs: every member's diagnostics come back as values and the host raises
+        # with the numbers and the first failing member, as for method=jl.Vmap().
+        check = "host"
     call = (
         system,
         q0,
@@ -306,8 +313,8 @@ def run_ensemble(
         grid,
         options["baumgarte"],
         projection,
-        bool(options["checks"].initial_state),
-        options["checks"].tolerance(q0.dtype),
+        check,
+        tolerance,
         keep_first,
         out_sharding,
     )
@@ -322,4 +329,8 @@ def run_ensemble(
                 stacklevel=3,
             )
             backend = "xla"
-    return _run(*call, backend)
+    out, diagnostics = _run(*call, backend)
+    if diagnostics is not None:
+        args = eqx.combine(batched_args, shared_args)
+        checking.raise_for_initial_states(system, diagnostics, args, tolerance)
+    return out

@@ -27,7 +27,10 @@ class Ensemble(AbstractBatchMethod):
     ``jl.RK4()``, ...), constant or PID steps, each member with its own step size when
     adaptive; per-member save times ``ts`` of shape ``(B, T)`` are allowed.
     Events, unilateral constraints and progress meters are not supported (a ``ValueError``
-    points to :class:`~jaxlag.Vmap`).
+    points to :class:`~jaxlag.Vmap`). Failed members are reported as :class:`~jaxlag.Vmap`
+    reports them: ``traj.failure`` and ``traj.result`` per member (a state that became
+    non-finite, a step size that collapsed, ``max_steps``), their unreached saves ``inf``, and
+    ``throw=True`` raises :class:`~jaxlag.SimulationError` naming the first failed member.
 
     ``backend``: ``"xla"`` (the loop as XLA operations), ``"pallas"`` (one fused Pallas kernel,
     constant steps; falls back to ``"xla"`` with a warning if the equations do not lower),
