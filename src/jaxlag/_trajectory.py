@@ -82,6 +82,10 @@ class Trajectory(eqx.Module):
     qd: States
     args: Args
     #: The solver's statistics (``num_steps``, ...; diffrax's, or the variational integrator's).
+    #: With events or unilateral constraints: ``num_steps``, ``num_accepted_steps`` and
+    #: ``num_rejected_steps`` summed over the segments, ``max_steps`` (per segment) and
+    #: ``num_segments``, the segments that ran (the entries of ``events.kinds()``, and the
+    #: crossings that directional conditions ignore).
     stats: dict[str, Any] | None
     result: diffrax.RESULTS | None
     # The system is split so that a Trajectory is a valid output of jax.jit / vmap: its arrays
