@@ -205,7 +205,9 @@ def test_rigid_body_errors_are_clear():
     bad = coordinates.RigidBody3D(lambda q: (q[:3], jnp.eye(2)), mass=1.0, inertia=jnp.ones(3))
     with pytest.raises(ValueError, match="\\(3, 3\\)"):
         bad.kinetic_energy(jnp.zeros(3), jnp.zeros(3), 0.0, None)
-    wrong_inertia = coordinates.RigidBody3D(lambda q: (q[:3], jnp.eye(3)), 1.0, jnp.ones(2))
+    with pytest.raises(ValueError, match="principal moments"):  # refused when the body is built
+        coordinates.RigidBody3D(lambda q: (q[:3], jnp.eye(3)), 1.0, jnp.ones(2))
+    wrong_inertia = coordinates.RigidBody3D(lambda q: (q[:3], jnp.eye(3)), 1.0, lambda a: jnp.ones(2))
     with pytest.raises(ValueError, match="principal moments"):
         wrong_inertia.kinetic_energy(jnp.zeros(3), jnp.zeros(3), 0.0, None)
     with pytest.raises(TypeError, match="RigidBody2D or RigidBody3D"):

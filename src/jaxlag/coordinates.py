@@ -28,16 +28,20 @@ position maps::
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from typing import Callable, Sequence, cast
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from . import _compile as compilation
 from ._conventions import UserFunction, wrap_configuration_function
 from ._custom_types import Args, Coordinates, Parameter, RealScalarLike, Scalar, Vector, Velocities
-from .rotations import unskew
+from ._misc import is_concrete
+from ._tolerances import MASS_RCOND, rcond
+from .rotations import euler_singularity, record_euler_calls, unskew
 
 __all__ = [
     "RigidBody2D",
@@ -131,6 +135,8 @@ class RigidBody2D(eqx.Module):
       ``I = m l²/12``, a uniform disk of radius ``R`` ``I = m R²/2``, a ring ``I = m R²``.
 
     Kinetic energy ``T = ½ m (ẋ_c² + ẏ_c²) + ½ I φ̇²`` (König's theorem); height ``y_c``.
+    ``m ≥ 0`` and a scalar ``I ≥ 0`` are checked (constants when built, functions of ``args``
+    at the initial state of a run); a body point ``r`` must have shape (2,).
     """
 
     pose: UserFunction
@@ -139,8 +145,8 @@ class RigidBody2D(eqx.Module):
 
     def __init__(self, pose: Callable, mass: Parameter, inertia: Parameter):
         self.pose = wrap_configuration_function(pose, "rigid body pose function")
-        self.mass = mass
-        self.inertia = inertia
+        self.mass = _validated(mass, "RigidBody2D", "mass", _mass_problem)
+        self.inertia = _validated(inertia, "RigidBody2D", "inertia", _planar_inertia_problem)
 
     def kinetic_energy(self, q: Vector, qd: Vector, t: RealScalarLike, args: Args) -> Scalar:
         x, v = _velocity(self.pose, q, qd, t, args)
@@ -169,7 +175,7 @@ class RigidBody2D(eqx.Module):
     ) -> Float[Array, "2"]:
         """World position ``x_c + R(φ) r`` of the body point with body coordinates ``r`` (2,)."""
         x = jnp.asarray(self.pose(q, t=t, args=args))
-        r = jnp.asarray(point, x.dtype)
+        r = _offset(point, 2, "RigidBody2D", x.dtype)
         c, s = jnp.cos(x[2]), jnp.sin(x[2])
         return x[:2] + jnp.stack([c * r[0] - s * r[1], s * r[0] + c * r[1]])
 
@@ -218,6 +224,16 @@ class RigidBody3D(eqx.Module):
     group (a quaternion off the unit sphere, nine free matrix entries), the kinetic energy of the
     body's mass points at ``x_c + R r``, so the mass matrix stays positive definite in every
     direction and the constraints keep the motion on the group. Gravity acts on ``x_c[2]``.
+
+    Checked (``ValueError`` with the numbers; ``eqx.error_if`` when traced): ``m ≥ 0`` (0 for a
+    body turning about its fixed centre, like a gimbal; ``m < 0`` would reverse gravity and
+    inertia); ``I`` symmetric and positive semidefinite with principal moments obeying the
+    triangle inequality ``I_a + I_b ≥ I_c`` (equality: a lamina), within ``√ε`` relative
+    (:func:`inertia_tolerance`) -- constants when the body is built, functions of ``args`` at
+    the initial state of a run. At the initial state ``R(q0)`` must be a rotation,
+    ``max |RᵀR − I| ≤ 100 √ε`` (:func:`pose_tolerance`) and ``det R > 0``, and a
+    parametrization that can leave the rotations (a quaternion, nine free entries) must be
+    held on them by holonomic constraints. A body point ``r`` must have shape (3,).
     """
 
     pose: UserFunction
@@ -226,8 +242,8 @@ class RigidBody3D(eqx.Module):
 
     def __init__(self, pose: Callable, mass: Parameter, inertia: Parameter):
         self.pose = wrap_configuration_function(pose, "rigid body pose function")
-        self.mass = mass
-        self.inertia = inertia
+        self.mass = _validated(mass, "RigidBody3D", "mass", _mass_problem)
+        self.inertia = _validated(inertia, "RigidBody3D", "inertia", _inertia_problem)
 
     # ----------------------------------------------------------------- kinematics
     def _pose(self, q, t, args):
@@ -280,7 +296,7 @@ class RigidBody3D(eqx.Module):
     ) -> Float[Array, "3"]:
         """World position ``x_c + R r`` of the body point with body coordinates ``r`` (3,)."""
         x, rotation = self._pose(jnp.asarray(q), t, args)
-        return x + rotation @ jnp.asarray(point, x.dtype)
+        return x + rotation @ _offset(point, 3, "RigidBody3D", x.dtype)
 
     def point_velocity(
         self,
@@ -292,7 +308,7 @@ class RigidBody3D(eqx.Module):
     ) -> Float[Array, "3"]:
         """``ẋ_c + Ṙ r = v + ω × (R r)`` (world axes): velocity of the body point ``r``."""
         (_, _), (v, rate) = self.pose_and_rates(q, qd, t, args)
-        return v + rate @ jnp.asarray(point, v.dtype)
+        return v + rate @ _offset(point, 3, "RigidBody3D", v.dtype)
 
     # ----------------------------------------------------------------- dynamics
     def inertia_tensor(self, args: Args = None) -> Float[Array, "3 3"]:
@@ -361,6 +377,7 @@ def kinetic_energy_from_positions(
     time-dependent maps (a rotating wire, a driven support) give the full ``∂x/∂t`` terms.
     """
     fn = wrap_configuration_function(positions, "position map") if positions is not None else None
+    masses = _validated(masses, "kinetic_energy_from_positions", "masses", _point_masses_problem)
     bodies = tuple(bodies)
     for b in bodies:
         if not isinstance(b, (RigidBody2D, RigidBody3D)):
@@ -406,7 +423,16 @@ def lagrangian_from_positions(
 
     ``T = ½ Σ m |ẋ|² (+ bodies)``, ``ẋ = (∂x/∂q) q̇ + ∂x/∂t`` by forward-mode autodiff. The
     returned function declares ``t`` and ``args``; pass it to :class:`jaxlag.System`.
+
+    Checks: constant masses and inertias when the bodies are built; masses and inertias that
+    are functions of ``args``, and each body's rotation ``R(q0)``, at the initial state of a run
+    (:func:`check_bodies`: masses ``≥ 0``; inertias symmetric, positive semidefinite, principal
+    moments obeying ``I_a + I_b ≥ I_c``; ``R`` orthonormal with ``det R = +1`` within
+    :func:`pose_tolerance`; a parametrization that can leave the rotations, such as a quaternion,
+    held by a holonomic constraint). A singular mass matrix caused by gimbal lock of a body's
+    Euler angles is reported as such.
     """
+    masses = _validated(masses, "lagrangian_from_positions", "masses", _point_masses_problem)
     kinetic_energy_from_positions(positions, masses, bodies=bodies)  # validates the pieces
     fn = wrap_configuration_function(positions, "position map") if positions is not None else None
     v_fn = wrap_configuration_function(potential, "potential") if potential is not None else None
@@ -434,4 +460,473 @@ def lagrangian_from_positions(
             value = value - parameter_value(gravity, args, "gravity") * height
         return value
 
-    return lagrangian
+    # Callable like the function, carrying the bodies for the initial-state check (check_bodies).
+    return _PositionLagrangian(lagrangian, fn, masses, bodies)
+
+
+# ----------------------------------------------------------------------------- validation
+# A body's mass, inertia and pose are checked where they are known: constants when the body is
+# built (eagerly with the numbers; a traced constant carries an eqx.error_if), functions of
+# `args` and the pose at the initial state of a run (check_bodies, called by the initial-state
+# check of every entry point). Nothing is checked per step.
+
+
+def inertia_tolerance(dtype) -> float:
+    """Relative tolerance of the inertia checks (symmetry, ``λ ≥ 0``, triangle inequality):
+    ``√ε`` of the dtype (1.5e-8 in float64, 3.5e-4 in float32), relative to the largest moment."""
+    return float(np.sqrt(np.finfo(dtype).eps))
+
+
+def pose_tolerance(dtype) -> float:
+    """Tolerance of the rotation check at the initial state, ``max |RᵀR − I| ≤ 100 √ε`` (1.5e-6
+    in float64, 3.5e-2 in float32): loose enough for a quaternion within the default constraint
+    tolerance of the unit sphere (``|q|² − 1`` up to 1e-8 moves ``RᵀR`` by 2e-8)."""
+    return 100.0 * float(np.sqrt(np.finfo(dtype).eps))
+
+
+def _float_dtype(x):
+    dtype = np.dtype(jnp.result_type(x))
+    return dtype if np.issubdtype(dtype, np.inexact) else np.dtype(jnp.result_type(float))
+
+
+def _mass_problem(value, traced: bool = False):
+    """Host: why ``value`` is not a mass (``str``) or ``None``; traced: ``(flag, text)``."""
+    shape = jnp.shape(value)
+    if shape != ():
+        raise ValueError(f"A body's mass must be a scalar; got shape {shape}.")
+    text = (
+        "must be finite and ≥ 0 (a negative mass reverses gravity and inertia: a heavy top with m < 0 rises)"
+    )
+    if traced:
+        return ~(jnp.asarray(value) >= 0), text
+    if not (np.isfinite(value) and value >= 0):
+        return (
+            f"mass m = {float(value):g}: a mass must be finite and ≥ 0 (0 for a body that only "
+            "turns about its fixed centre of mass, like a gimbal). A negative mass reverses both "
+            "gravity and inertia: a heavy top with m = −1 rises through upright."
+        )
+    return None
+
+
+def _point_masses_problem(value, traced: bool = False):
+    text = "must be finite and ≥ 0"
+    if traced:
+        return ~jnp.all(jnp.asarray(value) >= 0), text
+    value = np.asarray(value)
+    bad = np.flatnonzero(~(np.isfinite(value) & (value >= 0)).ravel())
+    if bad.size:
+        shown = ", ".join(f"masses[{int(i)}] = {value.ravel()[i]:g}" for i in bad[:4])
+        return f"point masses must be finite and ≥ 0; got {shown}."
+    return None
+
+
+def _planar_inertia_problem(value, traced: bool = False):
+    shape = jnp.shape(value)
+    if shape != ():
+        raise ValueError(
+            "A RigidBody2D inertia is the moment of inertia about the centre of mass, a scalar; got "
+            f"shape {shape}."
+        )
+    text = "must be finite and ≥ 0"
+    if traced:
+        return ~(jnp.asarray(value) >= 0), text
+    if not (np.isfinite(value) and value >= 0):
+        return f"moment of inertia I = {float(value):g}: it must be finite and ≥ 0 (I = ∫ |r|² dm)."
+    return None
+
+
+def _inertia_problem(value, traced: bool = False):
+    """Principal moments (3,) or a tensor (3, 3): finite, symmetric, ``λ ≥ 0``, ``λ_a + λ_b ≥ λ_c``."""
+    shape = jnp.shape(value)
+    if shape not in ((3,), (3, 3)):
+        _inertia_tensor(jnp.zeros(shape))  # raises the shape message
+    dtype = _float_dtype(value)
+    tol = inertia_tolerance(dtype)
+    xp = jnp if traced else np
+    value = xp.asarray(value, dtype)
+    tensor = xp.diag(value) if shape == (3,) else value
+    finite = xp.all(xp.isfinite(tensor))
+    safe = xp.where(finite, tensor, 0.0)
+    scale = xp.maximum(xp.max(xp.abs(safe)), np.finfo(dtype).tiny)
+    asymmetry = xp.max(xp.abs(safe - safe.T))
+    moments = value if shape == (3,) else xp.linalg.eigvalsh(0.5 * (safe + safe.T))
+    moments = xp.sort(xp.where(finite, moments, 0.0))
+    negative = moments[0] < -tol * scale
+    triangle = moments[0] + moments[1] < moments[2] - tol * scale
+    if traced:
+        bad = ~finite | (asymmetry > tol * scale) | negative | triangle
+        return bad, (
+            "must be finite, symmetric and positive semidefinite, its principal moments obeying the "
+            "triangle inequality I_a + I_b ≥ I_c"
+        )
+    if not finite:
+        return f"inertia {value.tolist()} is not finite."
+    if asymmetry > tol * scale:
+        i, j = np.unravel_index(np.argmax(np.abs(tensor - tensor.T)), (3, 3))
+        return (
+            f"the inertia tensor is not symmetric: I[{i}, {j}] = {tensor[i, j]:g} but I[{j}, {i}] = "
+            f"{tensor[j, i]:g} (tolerance {tol:.2g} relative). An inertia tensor is symmetric "
+            "(I_ij = −∫ r_i r_j dm for i ≠ j), and only its symmetric part would act; give the "
+            "symmetric tensor."
+        )
+    if negative:
+        return (
+            f"principal moments {moments.tolist()} include a negative one: moments of inertia "
+            "∫ (|r|² − r_i²) dm are ≥ 0 (the tensor must be positive semidefinite)."
+        )
+    if triangle:
+        return (
+            f"principal moments {moments.tolist()} violate the triangle inequality "
+            f"I_a + I_b ≥ I_c ({moments[0]:g} + {moments[1]:g} < {moments[2]:g}): no distribution "
+            "of mass has them (I_a + I_b − I_c = 2 ∫ r_c² dm ≥ 0). Equality is a flat body (a "
+            "lamina), I_c = 0 a thin rod along c."
+        )
+    return None
+
+
+def _validated(value, owner: str, name: str, problem):
+    """A constant mass or inertia checked when the body is built (a function of ``args`` is
+    checked at the initial state of a run, by :func:`check_bodies`)."""
+    if callable(value):
+        return value
+    if is_concrete(value):
+        text = problem(np.asarray(value))
+        if text is not None:
+            raise ValueError(f"{owner} {name}: {text}")
+        return value
+    bad, text = cast(tuple, problem(value, traced=True))
+    return eqx.error_if(jnp.asarray(value), bad, f"jaxlag: {owner} {name} {text}.")
+
+
+def _offset(point, size: int, owner: str, dtype):
+    r = jnp.asarray(point, dtype)
+    if r.shape != (size,):
+        raise ValueError(
+            f"A body point of a {owner} is given by its body coordinates r, shape ({size},); got "
+            f"shape {r.shape}."
+        )
+    return r
+
+
+class _PositionLagrangian:
+    """The Lagrangian built by :func:`lagrangian_from_positions`: a plain callable (static under
+    ``jit``, like the function it replaces) that also knows its bodies and point masses, so
+    that the initial-state check can validate them (:func:`check_bodies`)."""
+
+    def __init__(self, fn, positions, masses, bodies):
+        self._fn = fn
+        self.positions = positions
+        self.masses = masses
+        self.bodies = bodies
+
+    def __call__(self, q, qd, t=0.0, args=None):
+        return self._fn(q, qd, t, args)
+
+
+_GRAM = np.triu_indices(3)
+
+
+def _nearby(q):
+    """A point near ``q`` that is generic (not itself on a coordinate singularity)."""
+    pattern = jnp.sin(1.0 + 2.3 * jnp.arange(q.shape[0], dtype=q.dtype))
+    return q + 1e-2 * (1.0 + jnp.abs(q)) * pattern
+
+
+def _parameter_values(lagrangian, args) -> dict:
+    """Masses and inertias at ``args`` (plain calls: a function of ``args`` is cheap, and a
+    constant was checked when the body was built)."""
+    out: dict = dict(
+        masses=[parameter_value(b.mass, args, "mass") for b in lagrangian.bodies],
+        inertias=[parameter_value(b.inertia, args, "inertia") for b in lagrangian.bodies],
+    )
+    if lagrangian.positions is not None:
+        out["point_masses"] = parameter_value(lagrangian.masses, args, "masses")
+    return out
+
+
+@compilation.filter_jit
+def _pose_values(system, lagrangian, q, t, args):
+    """For each RigidBody3D, ``R(q0)``, ``∂(RᵀR)/∂q`` and ``∂R/∂q`` at ``q0`` and nearby; the
+    holonomic Jacobian ``J(q0)``. One small program, compiled once per system."""
+    t = jnp.asarray(t, q.dtype)
+    out: dict = dict(rotations=[], gram=[], jacobian=[], nearby=[])
+    for b in lagrangian.bodies:
+        if isinstance(b, RigidBody3D):
+
+            def rotation(x, b=b):
+                return b._pose(x, t, args)[1]
+
+            def gram(x, rotation=rotation):
+                r = rotation(x)
+                return (r.T @ r)[_GRAM]
+
+            # ∂R/∂q v = Ṙ = R [ω(v)]ₓ: on rotations ∂R/∂q has the rank of q̇ ↦ ω, so the
+            # Jacobian at q0 and nearby also tells where the parametrization loses rank.
+            out["rotations"].append(rotation(q))
+            out["gram"].append(jax.jacfwd(gram)(q))
+            out["jacobian"].append(jax.jacfwd(rotation)(q).reshape(9, q.shape[0]))
+            out["nearby"].append(jax.jacfwd(rotation)(_nearby(q)).reshape(9, q.shape[0]))
+    if system.holonomic is not None:
+        out["constraints"] = jax.jacfwd(lambda x: jnp.asarray(system.holonomic(x, t=t, args=args)))(q)
+    else:
+        out["constraints"] = jnp.zeros((0, q.shape[0]), q.dtype)
+    return out
+
+
+def _drift(gram, jacobian, constraints, xp):
+    """``(∂(RᵀR)/∂q) P`` with ``P`` the projector on the directions the holonomic constraints
+    allow, and the scale ``max |∂R/∂q|`` to compare it with."""
+    n = gram.shape[1]
+    projector = xp.eye(n, dtype=gram.dtype)
+    if constraints.shape[0] > 0:
+        projector = projector - xp.linalg.pinv(constraints) @ constraints
+    return gram @ projector, xp.maximum(xp.max(xp.abs(jacobian)), np.finfo(gram.dtype).tiny)
+
+
+def _rotation_error(rotation, xp):
+    gram = rotation.T @ rotation - xp.eye(3, dtype=rotation.dtype)
+    return xp.max(xp.abs(gram)), xp.linalg.det(rotation)
+
+
+def _signed(direction):
+    """A direction whose first sizeable component is positive (an SVD's sign is arbitrary;
+    "sizeable", within a factor 2 of the largest, so that round-off does not flip it)."""
+    magnitude = np.abs(direction)
+    first = int(np.flatnonzero(magnitude > 0.5 * np.max(magnitude))[0])
+    return direction * np.sign(direction[first])
+
+
+def _body_name(k, body) -> str:
+    return f"bodies[{k}] ({type(body).__name__})"
+
+
+def _host_problem(lagrangian, v, q) -> str | None:
+    """The first problem with the bodies at the initial state, with its numbers, or ``None``."""
+    dtype = np.asarray(q).dtype
+    problems = {RigidBody3D: _inertia_problem, RigidBody2D: _planar_inertia_problem}
+    for k, b in enumerate(lagrangian.bodies):
+        for name, value, problem in (
+            ("mass", v["masses"][k], _mass_problem),
+            ("inertia", v["inertias"][k], problems[type(b)]),
+        ):
+            text = problem(np.asarray(value))
+            if text is not None:
+                return f"{_body_name(k, b)} {name} at the initial state's args: {text}"
+    if "point_masses" in v:
+        text = _point_masses_problem(np.asarray(v["point_masses"]))
+        if text is not None:
+            return f"lagrangian_from_positions: {text}"
+    tol = pose_tolerance(dtype)
+    bodies3 = [(k, b) for k, b in enumerate(lagrangian.bodies) if isinstance(b, RigidBody3D)]
+    for i, (k, b) in enumerate(bodies3):
+        rotation = np.asarray(v["rotations"][i])
+        error, det = _rotation_error(rotation, np)
+        if not (error <= tol and det > 0):
+            kind = "a reflection (det R < 0)" if det < 0 else "not orthonormal"
+            return (
+                f"The pose of {_body_name(k, b)} returns at the initial state a matrix R that is "
+                f"{kind}: max |RᵀR − I| = {error:.3g} (tolerance {tol:.2g}), det R = {det:.6g}, "
+                f"R = {rotation.tolist()}. R must be a rotation (orthonormal, det +1): a scaled "
+                "or sheared R gives a wrong kinetic energy ½ωᵀIω and a wrong motion. Build it with "
+                "jaxlag.rotations (euler_matrix, axis_rotation, axis_angle_matrix, or "
+                "quaternion_matrix of a unit quaternion)."
+            )
+    for i, (k, b) in enumerate(bodies3):
+        constraints = np.asarray(v["constraints"])
+        drift, scale = _drift(np.asarray(v["gram"][i]), np.asarray(v["jacobian"][i]), constraints, np)
+        if np.max(np.abs(drift)) > inertia_tolerance(dtype) * scale:
+            direction = _signed(np.linalg.svd(drift)[2][0])
+            used = np.flatnonzero(np.abs(direction) > 0.1 * np.max(np.abs(direction)))
+            entries = ", ".join(f"q[{int(j)}]" for j in used)
+            return (
+                f"The pose of {_body_name(k, b)} leaves the rotation group: RᵀR changes along "
+                f"q̇ ∝ {np.round(direction, 6).tolist()} (coordinates {entries}), and no holonomic "
+                "constraint of the System holds it there, so R drifts off the rotations during "
+                "the run (a quaternion's |q| grows, the body shrinks or swells). A quaternion body "
+                "needs the constraint |q|² − 1 = 0, e.g. System(L, holonomic=lambda q: "
+                "jnp.reshape(q[i:i+4] @ q[i:i+4] - 1.0, (1,))) for q[i:i+4] the quaternion "
+                "(jaxlag.systems.heavy_top('quaternion') does this); the nine entries of R need "
+                "the six constraints RᵀR − I = 0."
+            )
+    return None
+
+
+def _singularity_message(system, lagrangian, v, q, qd, t, args) -> str | None:
+    """If ``M`` is singular at ``q0`` because a body's orientation coordinates lose rank there
+    (gimbal lock), say so and name the Euler sequence; else ``None`` (M is regular, or singular
+    for another reason: left to the generic check)."""
+    bodies3 = [(k, b) for k, b in enumerate(lagrangian.bodies) if isinstance(b, RigidBody3D)]
+    for i, (k, b) in enumerate(bodies3):
+        here, nearby = np.asarray(v["jacobian"][i]), np.asarray(v["nearby"][i])
+        s_nearby = np.linalg.svd(nearby, compute_uv=False)
+        if s_nearby[0] == 0:
+            continue
+        _, s_here, vt = np.linalg.svd(here)
+        cut = 1e-8 * s_nearby[0]
+        rank_here, rank_nearby = int(np.sum(s_here > cut)), int(np.sum(s_nearby > cut))
+        if rank_here >= rank_nearby:
+            continue
+        null = vt[rank_here:]  # directions that do not turn the body at q0
+        lost = _signed(null.T @ np.linalg.svd(nearby @ null.T)[2][0])  # ... but turn it nearby
+        qa = jnp.asarray(q)
+        qda = jnp.asarray(qd)
+        ta = jnp.asarray(t, qa.dtype)
+        mass = np.asarray(system.mass_matrix(qa, qda, ta, args))  # compiled; M is not checked there
+        eig = np.linalg.eigvalsh(mass)
+        largest = max(float(np.max(np.abs(eig))), np.finfo(eig.dtype).tiny)
+        if eig[0] > rcond(MASS_RCOND, eig.dtype) * largest or np.linalg.norm(mass @ lost) > 1e-6 * largest:
+            continue
+        with record_euler_calls() as calls:
+            b._pose(qa, ta, args)
+        euler = ""
+        for sequence, extrinsic, angles in calls:
+            angles = np.asarray(angles)
+            middle = angles[1]
+            margin = abs(np.sin(middle)) if sequence[0] == sequence[2] else abs(np.cos(middle))
+            if margin < 1e-6:
+                order = "extrinsic" if extrinsic else "intrinsic"
+                euler = (
+                    f" Its pose uses rotations.euler_matrix(angles, {sequence!r}) ({order}) with "
+                    f"angles {angles.tolist()}: Euler angles {sequence!r} are singular at "
+                    f"{euler_singularity(sequence)}, and the middle angle is {middle:.6g} here "
+                    "(gimbal lock)."
+                )
+                break
+        return (
+            f"The mass matrix M = ∂²L/∂q̇² is singular at the initial state (eigenvalues {eig}) "
+            f"because the coordinates of the orientation of {_body_name(k, b)} are singular there, "
+            f"not because the Lagrangian lacks a kinetic term: along q̇ ∝ "
+            f"{np.round(lost, 6).tolist()} the body does not turn at q0 (its map q̇ ↦ ω has rank "
+            f"{rank_here} here and {rank_nearby} nearby).{euler} Use a quaternion body, which has no "
+            "singularity (rotations.quaternion_matrix(q[i:i+4]) with the holonomic constraint "
+            "|q|² − 1 = 0, as jaxlag.systems.heavy_top('quaternion')), or start away from it "
+            "(rotations.gimbal_lock_margin(angles, sequence) > 0)."
+        )
+    return None
+
+
+def _traced_checks(lagrangian, v, q):
+    """``(flags, messages)`` of the same checks as :func:`_host_problem`, for traced values."""
+    dtype = q.dtype
+    flags, messages = [], []
+    problems = {RigidBody3D: _inertia_problem, RigidBody2D: _planar_inertia_problem}
+    for k, b in enumerate(lagrangian.bodies):
+        for name, value, problem in (
+            ("mass", v["masses"][k], _mass_problem),
+            ("inertia", v["inertias"][k], problems[type(b)]),
+        ):
+            bad, text = cast(tuple, problem(value, traced=True))
+            flags.append(bad)
+            messages.append(f"{_body_name(k, b)} {name} {text}.")
+    if "point_masses" in v:
+        bad, text = cast(tuple, _point_masses_problem(v["point_masses"], traced=True))
+        flags.append(bad)
+        messages.append(f"lagrangian_from_positions: point masses {text}.")
+    tol = pose_tolerance(dtype)
+    bodies3 = [(k, b) for k, b in enumerate(lagrangian.bodies) if isinstance(b, RigidBody3D)]
+    for i, (k, b) in enumerate(bodies3):
+        error, det = _rotation_error(v["rotations"][i], jnp)
+        flags.append(~((error <= tol) & (det > 0)))
+        messages.append(
+            f"The pose of {_body_name(k, b)} returns at the initial state a matrix R that is not a "
+            f"rotation (max |RᵀR − I| > {tol:.2g} or det R ≤ 0): build it with jaxlag.rotations."
+        )
+    for i, (k, b) in enumerate(bodies3):
+        drift, scale = _drift(v["gram"][i], v["jacobian"][i], v["constraints"], jnp)
+        flags.append(jnp.max(jnp.abs(drift)) > inertia_tolerance(dtype) * scale)
+        messages.append(
+            f"The pose of {_body_name(k, b)} leaves the rotation group along a direction that no "
+            "holonomic constraint holds: a quaternion body needs |q|² − 1 = 0 as a holonomic "
+            "constraint (the nine entries of R need RᵀR − I = 0)."
+        )
+    return flags, messages
+
+
+_COMPILED = " (Checked inside a compiled program: call outside jit/vmap/grad to see the numbers.)"
+
+
+def check_bodies(system, q, qd, t, args):
+    """Validate the rigid bodies and point masses of a Lagrangian built by
+    :func:`lagrangian_from_positions` at the initial state ``(q0, t0, args)``: masses ``≥ 0``,
+    inertias symmetric, positive semidefinite, obeying the triangle inequality; each
+    ``R(q0)`` a rotation within :func:`pose_tolerance`; no direction that moves ``R`` off the
+    rotations unless a holonomic constraint forbids it; and, when ``M`` is singular because a
+    body's orientation coordinates are (gimbal lock), a message that says so. Concrete values
+    raise ``ValueError`` with the numbers; traced ones return ``q`` carrying
+    ``eqx.branched_error_if`` (static messages). Other Lagrangians: ``q`` unchanged."""
+    lagrangian = system.lagrangian.fn
+    if not isinstance(lagrangian, _PositionLagrangian):
+        return q
+    spatial = any(isinstance(b, RigidBody3D) for b in lagrangian.bodies)
+    parameters = [b.mass for b in lagrangian.bodies] + [b.inertia for b in lagrangian.bodies]
+    parameters += [lagrangian.masses] if lagrangian.positions is not None else []
+    if not spatial and not any(callable(p) for p in parameters):
+        return q  # constants only: checked when the bodies were built
+    values = _parameter_values(lagrangian, args)
+    if spatial:
+        values.update(_pose_values(system, lagrangian, q, t, args))
+    if is_concrete((q, qd, t, args, values)):
+        host = jax.device_get(values)
+        text = _host_problem(lagrangian, host, q)
+        if text is None:
+            text = _singularity_message(system, lagrangian, host, q, qd, t, args)
+        if text is not None:
+            raise ValueError(text)
+        return q
+    flags, messages = _traced_checks(lagrangian, values, q)
+    if not flags:
+        return q
+    stacked = jnp.stack([jnp.asarray(f) for f in flags])
+    messages = tuple(f"jaxlag: {m}{_COMPILED}" for m in messages)
+    return eqx.branched_error_if(q, jnp.any(stacked), jnp.argmax(stacked), messages)
+
+
+def body_diagnostics(system, q, qd, t, args):
+    """The checks of :func:`check_bodies` as values, traceable and without a callback (for
+    batch programs that return their checks to the host): ``(values, flags)``, or ``None``
+    when there is nothing to check. :func:`raise_for_bodies` raises from them on the host."""
+    del qd  # the checks depend on the configuration only
+    lagrangian = system.lagrangian.fn
+    if not isinstance(lagrangian, _PositionLagrangian):
+        return None
+    spatial = any(isinstance(b, RigidBody3D) for b in lagrangian.bodies)
+    parameters = [b.mass for b in lagrangian.bodies] + [b.inertia for b in lagrangian.bodies]
+    parameters += [lagrangian.masses] if lagrangian.positions is not None else []
+    if not spatial and not any(callable(p) for p in parameters):
+        return None
+    values = _parameter_values(lagrangian, args)
+    if spatial:
+        values.update(_pose_values(system, lagrangian, q, t, args))
+    flags, _ = _traced_checks(lagrangian, values, q)
+    return values, jnp.stack([jnp.asarray(f) for f in flags])
+
+
+def raise_for_bodies(system, diagnostics, q) -> None:
+    """Raise ``ValueError`` with the numbers for the first batch member whose bodies fail the
+    checks of :func:`body_diagnostics` (``diagnostics`` and ``q`` with or without a leading
+    batch axis)."""
+    if diagnostics is None:
+        return
+    values, flags = jax.device_get(diagnostics)
+    flags, q = np.asarray(flags), np.asarray(q)
+    batched = flags.ndim == 2
+    failing = flags.any(axis=-1).reshape(-1)
+    members = np.flatnonzero(failing)
+    if members.size == 0:
+        return
+    first = int(members[0])
+    if batched:
+        values = jax.tree.map(lambda x: np.asarray(x)[first], values)
+        q = q[first]
+    lagrangian = system.lagrangian.fn
+    text = _host_problem(lagrangian, values, q)
+    if text is None:  # within round-off of a threshold: the compiled flag's static message
+        _, messages = _traced_checks(lagrangian, values, jnp.asarray(q))
+        member_flags = flags[first] if batched else flags
+        text = messages[int(np.argmax(member_flags))]
+    prefix = (
+        f"{members.size} of {failing.size} batch members failed (first: member [{first}]). Member [{first}]: "
+        if batched
+        else ""
+    )
+    raise ValueError(prefix + text)

@@ -27,6 +27,7 @@ from typing import Callable, Sequence
 
 import equinox as eqx
 import jax
+import jax.extend.core as jcore
 import jax.numpy as jnp
 from jaxtyping import ArrayLike
 
@@ -50,6 +51,12 @@ def point_map(point: PointLike) -> UserFunction:
     """
     if isinstance(point, tuple) and len(point) == 2 and isinstance(point[0], _BODIES):
         body, offset = point
+        size = 3 if isinstance(body, RigidBody3D) else 2
+        if jnp.shape(offset) != (size,):
+            raise ValueError(
+                f"A body point ({type(body).__name__}, r) takes r in body coordinates, shape "
+                f"({size},); got shape {jnp.shape(offset)}."
+            )
 
         def position(q, t, args):
             return body.point_position(q, offset, t, args)
@@ -76,7 +83,11 @@ def _load_function(load, role):
 
 class Force(eqx.Module):
     """A force ``F`` (world components) acting at ``point``: a ``(body, r)`` pair or a position
-    map ``x(q, [t], [args])``. ``force``: ``F(q, qd, [t], [args]) -> (d,)`` or a constant."""
+    map ``x(q, [t], [args])``. ``force``: ``F(q, qd, [t], [args]) -> (d,)`` or a constant.
+
+    A position map that does not depend on ``q`` is refused (``ValueError`` when the forces
+    are first evaluated): such a point has no virtual displacement, so the force would
+    contribute exactly 0. A body offset ``r`` must have shape (3,) (a ``RigidBody2D``: (2,))."""
 
     point: UserFunction
     force: UserFunction
@@ -97,6 +108,16 @@ class Force(eqx.Module):
             raise ValueError(
                 f"The force at a point must have the shape of the point's position, {shape}; it "
                 f"has shape {load.shape}."
+            )
+        if not _depends_on_input(velocity, qd):
+            raise ValueError(
+                "loads.Force: the point's position map does not depend on q (a point fixed in "
+                "space, or one moving on a prescribed path x(t)). Its virtual displacement "
+                "δx = (∂x/∂q) δq is zero, so the force does no virtual work on the system and "
+                "its generalized force is exactly 0: almost always a mistake. Apply the force at "
+                "a point of a body, Force((body, r), F) with r in body coordinates, or write the "
+                "position map as a function of q; drop the load if it truly acts on nothing that "
+                "moves."
             )
         return jax.linear_transpose(velocity, qd)(load.astype(q.dtype))[0]
 
@@ -143,6 +164,18 @@ class Torque(eqx.Module):
                 f"shape {load.shape}."
             )
         return jax.linear_transpose(velocity, qd)(load.astype(q.dtype))[0]
+
+
+def _depends_on_input(fn, x) -> bool:
+    """Whether the output of ``fn(x)`` depends on ``x`` in its traced program (a structural
+    test at trace time: no cost when the program runs). An equation with any live input makes
+    all its outputs live (conservative for control flow and sub-programs)."""
+    jaxpr = jax.make_jaxpr(fn)(x).jaxpr
+    live = {id(v) for v in jaxpr.invars}
+    for eqn in jaxpr.eqns:
+        if any(not isinstance(v, jcore.Literal) and id(v) in live for v in eqn.invars):
+            live.update(id(v) for v in eqn.outvars)
+    return any(not isinstance(v, jcore.Literal) and id(v) in live for v in jaxpr.outvars)
 
 
 def _world_rate(rotation, rate):

@@ -19,11 +19,30 @@ Conventions (used throughout jaxlag):
   :func:`angular_velocity` forms ``Ṙ = (∂R/∂q) q̇ + ∂R/∂t`` by one ``jax.jvp`` of the
   orientation map along ``(q̇, 1)``; the vector is read off the skew part (exact when ``R`` is
   orthogonal).
+
+Singularities (where a parametrization loses rank: the map from coordinate rates to ``ω``
+drops from rank 3 to 2, so the mass matrix of a body described by it is singular there):
+
+=================================  ==========================================  =====================
+parametrization                     singular at                                 fix
+=================================  ==========================================  =====================
+proper Euler (``"zxz"``, ``"zyz"``,  middle angle ``a₂ = 0`` or ``π``                a quaternion body, or
+``"xyx"``, ... first = last)        (``θ = 0, π`` for ``"zxz"``)                 start away from it
+Tait–Bryan (``"zyx"``, ``"xyz"``,   middle angle ``a₂ = ±π/2`` (pitch ±90°       same
+... three different axes)           for yaw–pitch–roll)
+quaternion + ``|q|² = 1``           nowhere (``q`` and ``−q`` are one rotation)   —
+nine entries of ``R`` + ``RᵀR = I``   nowhere                                      —
+=================================  ==========================================  =====================
+
+:func:`gimbal_lock_margin` measures the distance to the Euler singularity (``|sin a₂|`` or
+``|cos a₂|``, 0 at gimbal lock).
 """
 
 from __future__ import annotations
 
-from typing import Callable, cast
+import contextlib
+import contextvars
+from typing import Callable, Iterator, cast
 
 import jax
 import jax.numpy as jnp
@@ -38,6 +57,7 @@ __all__ = [
     "axis_angle_matrix",
     "axis_rotation",
     "euler_matrix",
+    "gimbal_lock_margin",
     "quaternion_from_matrix",
     "quaternion_matrix",
     "skew",
@@ -45,6 +65,60 @@ __all__ = [
 ]
 
 _AXES = {"x": 0, "y": 1, "z": 2}
+
+# Set only while jaxlag diagnoses a singular mass matrix at the initial state (an eager call on
+# the failure path): euler_matrix then records its sequence and angles so that the message can
+# name the gimbal lock. Never set while a user's program is traced or run.
+_EULER_CALLS: contextvars.ContextVar[list | None] = contextvars.ContextVar("jaxlag_euler_calls", default=None)
+
+
+@contextlib.contextmanager
+def record_euler_calls() -> Iterator[list]:
+    """Within the block, :func:`euler_matrix` appends ``(sequence, extrinsic, angles)`` to the
+    yielded list (private: used by the diagnosis of coordinate singularities)."""
+    calls: list = []
+    token = _EULER_CALLS.set(calls)
+    try:
+        yield calls
+    finally:
+        _EULER_CALLS.reset(token)
+
+
+def _check_sequence(sequence) -> None:
+    if (
+        not isinstance(sequence, str)
+        or len(sequence) != 3
+        or any(a not in _AXES for a in sequence)
+        or sequence[0] == sequence[1]
+        or sequence[1] == sequence[2]
+    ):
+        raise ValueError(
+            f"sequence must be three letters from 'xyz' with no two neighbours equal (e.g. 'zxz', "
+            f"'zyx'); got {sequence!r}."
+        )
+
+
+def euler_singularity(sequence: str) -> str:
+    """Where the Euler angles of ``sequence`` are singular, in words (for messages and docs)."""
+    _check_sequence(sequence)
+    if sequence[0] == sequence[2]:
+        return "the middle angle a₂ = 0 or π (proper Euler angles: a₁ and a₃ then turn about the same axis)"
+    return "the middle angle a₂ = ±π/2 (Tait–Bryan angles: a₁ and a₃ then turn about the same axis)"
+
+
+def gimbal_lock_margin(angles: Float[ArrayLike, "3"], sequence: str = "zxz") -> Float[Array, ""]:
+    """Distance of the Euler angles ``(a₁, a₂, a₃)`` from gimbal lock: ``|sin a₂|`` for proper
+    Euler sequences (first axis = last, singular at ``a₂ = 0, π``), ``|cos a₂|`` for
+    Tait–Bryan sequences (singular at ``a₂ = ±π/2``). It vanishes exactly where the map from
+    angle rates to angular velocity loses rank, where the mass matrix of a body described by
+    these angles alone is singular. Use it as an event condition to stop
+    before the singularity, or switch to a quaternion body, which has none."""
+    _check_sequence(sequence)
+    angles = _float(angles)
+    if angles.shape != (3,):
+        raise ValueError(f"gimbal_lock_margin takes three angles, shape (3,); got shape {angles.shape}.")
+    middle = angles[1]
+    return jnp.abs(jnp.sin(middle)) if sequence[0] == sequence[2] else jnp.abs(jnp.cos(middle))
 
 
 def _float(x):
@@ -104,22 +178,16 @@ def euler_matrix(
     Intrinsic (default): ``R = R_{s₁}(a₁) R_{s₂}(a₂) R_{s₃}(a₃)``; extrinsic:
     ``R = R_{s₃}(a₃) R_{s₂}(a₂) R_{s₁}(a₁)``. ``"zyx"`` intrinsic is yaw–pitch–roll; ``"zxz"``
     is the classical ``(φ, θ, ψ)`` = (precession, nutation, spin), singular (gimbal lock) at
-    ``θ = 0, π``.
+    ``θ = 0, π``; every proper sequence (first axis = last) is singular at ``a₂ = 0, π``, every
+    Tait–Bryan sequence (``"zyx"``: pitch) at ``a₂ = ±π/2`` (:func:`gimbal_lock_margin`).
     """
-    if (
-        not isinstance(sequence, str)
-        or len(sequence) != 3
-        or any(a not in _AXES for a in sequence)
-        or sequence[0] == sequence[1]
-        or sequence[1] == sequence[2]
-    ):
-        raise ValueError(
-            f"sequence must be three letters from 'xyz' with no two neighbours equal (e.g. 'zxz', "
-            f"'zyx'); got {sequence!r}."
-        )
+    _check_sequence(sequence)
     angles = _float(angles)
     if angles.shape != (3,):
         raise ValueError(f"euler_matrix takes three angles, shape (3,); got shape {angles.shape}.")
+    calls = _EULER_CALLS.get()
+    if calls is not None:
+        calls.append((sequence, extrinsic, angles))
     factors = [axis_rotation(a, angles[i]) for i, a in enumerate(sequence)]
     if extrinsic:
         factors = factors[::-1]
