@@ -401,7 +401,10 @@ def test_bad_input_errors():
         analysis.normal_modes(systems.knife_edge(), jnp.zeros(3))
     with pytest.raises(ValueError, match="scalar or a 1-D array"):
         analysis.linearize(
-            systems.cart_pole(), jnp.zeros(2), args={"gain": jnp.ones((2, 2))}, inputs=lambda a: a["gain"]
+            systems.cart_pole(lambda q, qd, args: -jnp.sum(args["gain"]) * qd[0]),
+            jnp.zeros(2),
+            args={"gain": jnp.ones((2, 2))},
+            inputs=lambda a: a["gain"],
         )
 
 

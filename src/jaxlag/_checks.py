@@ -22,6 +22,7 @@ from ._mechanics import constraints as _constraints
 from ._mechanics.kkt import accelerations_and_multipliers
 from ._mechanics.lagrangian import mass_matrix
 from ._misc import is_concrete
+from .coordinates import body_diagnostics, check_bodies, raise_for_bodies
 from ._tolerances import (
     CONSTRAINT_RCOND,
     MASS_RCOND,
@@ -99,11 +100,18 @@ def _diagnostics_on_host(system, q, qd, t, args, tolerance):
     if not is_concrete(values):
         return None
     values = jax.device_get(values)
-    rows = values["rows"]
-    values["eigenvalues"] = np.linalg.eigvalsh(values["mass"])
-    values["singular_values"] = (
-        np.linalg.svd(rows, compute_uv=False) if rows.shape[0] > 0 else np.ones((1,), rows.dtype)
+    rows, mass = values["rows"], values["mass"]
+    # LAPACK does not converge on NaN: a non-finite M or J is reported as such (checked first),
+    # its spectrum is NaN.
+    values["eigenvalues"] = (
+        np.linalg.eigvalsh(mass) if np.all(np.isfinite(mass)) else np.full(mass.shape[:1], np.nan, mass.dtype)
     )
+    if rows.shape[0] == 0:
+        values["singular_values"] = np.ones((1,), rows.dtype)
+    elif np.all(np.isfinite(rows)):
+        values["singular_values"] = np.linalg.svd(rows, compute_uv=False)
+    else:
+        values["singular_values"] = np.full((min(rows.shape),), np.nan, rows.dtype)
     return values, _failures(values, system.least_squares, tolerance, np)
 
 
@@ -143,6 +151,9 @@ def _diagnostic_values(system, q, qd, t, args, tolerance, spectra=True):
         finite=jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(qd)),
         args_finite=jnp.stack(parameters) if parameters else jnp.ones((0,), bool),
         constraints_finite=jnp.all(jnp.isfinite(f)) & jnp.all(jnp.isfinite(f_dot)) & jnp.all(jnp.isfinite(g)),
+        residuals_finite=jnp.all(jnp.isfinite(f)) & jnp.all(jnp.isfinite(g)),
+        mass_finite=jnp.all(jnp.isfinite(mass)),
+        jacobian_finite=jnp.all(jnp.isfinite(rows)),
         not_diagonal=not_diagonal,
         mass=mass,
         f=jnp.where(active, f, 0.0),
@@ -174,6 +185,24 @@ def _inexact_names(tree) -> list[str]:
     ]
 
 
+def unmarked_batch_hint(args, args_axes) -> str:
+    """For ``simulate_batch``'s "nothing to batch": the ``args`` leaves with a leading axis that
+    ``args_axes`` leaves shared (a forgotten ``args_axes``), or ``""``."""
+    if args_axes is not None:
+        return ""
+    arrays = [
+        (path, jnp.shape(x)) for path, x in jax.tree_util.tree_leaves_with_path(args) if jnp.ndim(x) >= 1
+    ]
+    if not arrays:
+        return ""
+    names = ", ".join(f"args{jax.tree_util.keystr(path)} (shape {shape})" for path, shape in arrays[:4])
+    return (
+        f" args_axes is None, so every args leaf is shared, including {names}: if these hold "
+        "one value per member, pass args_axes=0 (all leaves) or a dict like args with 0 at the "
+        "batched leaves and None at the shared ones."
+    )
+
+
 def _failures(d, least_squares: bool, tolerance: float, xp=jnp):
     """Which checks fail, from :func:`_diagnostic_values` (``xp``: ``jax.numpy`` in a program,
     ``numpy`` on the host)."""
@@ -185,6 +214,10 @@ def _failures(d, least_squares: bool, tolerance: float, xp=jnp):
     return dict(
         nonfinite=~d["finite"],
         nonfinite_args=~xp.all(d["args_finite"]),
+        nonfinite_mass=~d["mass_finite"],
+        # f and g finite, their derivative not (sqrt(x²) at 0): before the residual check, which
+        # ḟ = J q̇ then fails as a consequence.
+        nonfinite_jacobian=d["residuals_finite"] & ~d["jacobian_finite"],
         nonfinite_constraints=~d["constraints_finite"],
         not_diagonal=d["not_diagonal"],
         mass=~(eig[0] > rcond(MASS_RCOND, eig.dtype) * xp.max(xp.abs(eig))),
@@ -235,29 +268,114 @@ class _Static(eqx.Module):
     arg_names: tuple = eqx.field(static=True)
 
 
+#: Arrays up to this size are printed whole in messages; longer ones are summarized.
+_WHOLE = 8
+
+
+def _values(label: str, x, index: str | None = None, tolerance: float = 0.0, worst: int = 3) -> str:
+    """``label = [...]`` for a short array; for a long one (a 100-link chain) its size, norm and
+    the largest entries with their indices (``index[i] = value``), with how many exceed
+    ``tolerance``."""
+    x = np.asarray(x)
+    if x.size <= _WHOLE:
+        return f"{label} = {x}"
+    index = index or label
+    flat = x.ravel()
+    magnitude = np.where(np.isfinite(flat), np.abs(flat), np.inf)
+    beyond = int(np.sum(magnitude > tolerance))
+    if beyond == 0:
+        return (
+            f"{label} = 0 in all {x.size} entries"
+            if tolerance == 0
+            else f"{label}: all {x.size} within tolerance"
+        )
+    largest = np.argsort(-magnitude, kind="stable")[: min(worst, beyond)]
+    entries = ", ".join(f"{index}[{int(i)}] = {flat[i]:.3g}" for i in largest)
+    count = f"{beyond} of {x.size} entries beyond {tolerance:g}" if tolerance > 0 else f"{x.size} entries"
+    return f"{label}: {count}, norm {np.linalg.norm(flat):.3g}, largest {entries}"
+
+
+def _nonfinite_entries(label: str, x, worst: int = 4) -> str:
+    """``label[i] = nan, ...`` for the non-finite entries of ``x`` (all of a short array)."""
+    x = np.asarray(x)
+    if x.size <= _WHOLE:
+        return f"{label} = {x}"
+    bad = np.flatnonzero(~np.isfinite(x))
+    shown = ", ".join(f"{label}[{int(i)}] = {x.ravel()[i]}" for i in bad[:worst])
+    more = f" and {bad.size - worst} more" if bad.size > worst else ""
+    return f"{shown}{more} (of {x.size})" if bad.size else f"{label} finite"
+
+
+def _spectrum(x) -> str:
+    x = np.asarray(x)
+    if x.size <= _WHOLE:
+        return str(x)
+    return f"{x.size} values from {np.min(x):.3g} to {np.max(x):.3g}"
+
+
+def _nonfinite_rows(rows, m_h: int, limit: int = 4) -> str:
+    """``∂f_i/∂q_j = nan at J[i, j] (holonomic[i], q[j])`` for the non-finite entries of the
+    constraint rows ``[J; A]``."""
+    bad = np.argwhere(~np.isfinite(np.asarray(rows)))
+    named = []
+    for i, j in bad[:limit]:
+        value = np.asarray(rows)[i, j]
+        if i < m_h:
+            named.append(f"J[{i}, {j}] = ∂f_{i}/∂q_{j} = {value} (holonomic[{i}], q[{j}])")
+        else:
+            named.append(f"A[{i - m_h}, {j}] = ∂g_{i - m_h}/∂q̇_{j} = {value} (velocity[{i - m_h}], q̇[{j}])")
+    more = f", and {len(bad) - limit} more" if len(bad) > limit else ""
+    return "; ".join(named) + more
+
+
 def _initial_message(d, fail, static: _Static, where: str = "at the initial state") -> str | None:
     """The message for one member's host diagnostics, or None (shared by both paths)."""
     if not any(bool(x) for x in fail.values()):
         return None
     if bool(fail.get("nonfinite", False)):
-        return f"The initial state is not finite: q0={np.asarray(d['q'])}, qd0={np.asarray(d['qd'])}."
+        return (
+            f"The initial state is not finite: {_nonfinite_entries('q0', d['q'])}, "
+            f"{_nonfinite_entries('qd0', d['qd'])}."
+        )
     if bool(fail.get("nonfinite_args", False)):
         bad = [name for name, ok in zip(static.arg_names, np.asarray(d["args_finite"])) if not ok]
         return (
             f"A parameter in args is not finite (NaN or inf): {', '.join(bad)}. Every "
             "floating-point leaf of args must be finite."
         )
+    if bool(fail.get("nonfinite_mass", False)):
+        mass = np.asarray(d["mass"]) if "mass" in d else None
+        entries = ""
+        if mass is not None:
+            bad = np.argwhere(~np.isfinite(mass))[:4]
+            entries = ": " + ", ".join(f"M[{i}, {j}] = {mass[i, j]}" for i, j in bad)
+        return (
+            f"The mass matrix M = ∂²L/∂q̇² is not finite {where}{entries}. L is finite but its "
+            "second derivative in q̇ is not: a kinetic term that is not twice differentiable "
+            "there (|q̇| written as sqrt(q̇²), a norm of a zero vector, a fractional power of "
+            "zero). Write the kinetic energy with squares (½ m q̇², ½ m |v|² as v @ v)."
+        )
     if bool(fail.get("mass", False)):
         return (
             f"The mass matrix M = ∂²L/∂q̇² is singular or not positive definite {where} "
-            f"(eigenvalues {np.asarray(d['eigenvalues'])}). The Lagrangian is degenerate: "
-            "every coordinate needs a kinetic term with a positive coefficient."
+            f"(eigenvalues {_spectrum(d['eigenvalues'])}). The Lagrangian is degenerate: "
+            "every coordinate needs a kinetic term with a positive coefficient" + _SINGULAR_COORDINATES
+        )
+    if bool(fail.get("nonfinite_jacobian", False)):
+        m_h = np.asarray(d["f"]).shape[0]
+        return (
+            f"The constraint Jacobian is not finite {where}, although the constraints are: "
+            f"{_nonfinite_rows(d['rows'], m_h)} ({_values('f(q0)', d['f_raw'], 'f')}, "
+            f"{_values('q0', d['q'])}). The constraint function is not differentiable there: "
+            "|x| written as sqrt(x**2) or a norm of a zero vector at x = 0, a square root or "
+            "fractional power of zero, arctan2(0, 0). Write it in a differentiable form "
+            "(e.g. x**2 - r**2 instead of |x| - r, jnp.abs instead of sqrt(x**2)), or start "
+            "away from that point."
         )
     if bool(fail.get("nonfinite_constraints", False)):
         return (
-            f"The constraint functions are not finite {where}: f(q0) = "
-            f"{np.asarray(d['f_raw'])}, ḟ = {np.asarray(d['f_dot'])}, g = {np.asarray(d['g'])} "
-            f"(q0 = {np.asarray(d['q'])})."
+            f"The constraint functions are not finite {where}: {_values('f(q0)', d['f_raw'], 'f')}, "
+            f"{_values('ḟ', d['f_dot'])}, {_values('g', d['g'])} ({_values('q0', d['q'])})."
         )
     if bool(fail.get("not_diagonal", False)):
         matrix = f":\n{np.asarray(d['mass'])}" if "mass" in d else " (call outside jit to see M)."
@@ -274,29 +392,40 @@ def _initial_message(d, fail, static: _Static, where: str = "at the initial stat
         )
         return (
             f"The constraints are redundant or conflicting {where}: the constraint "
-            f"Jacobian [J; A] (singular values {np.asarray(d['singular_values'])}) is rank "
+            f"Jacobian [J; A] (singular values {_spectrum(d['singular_values'])}) is rank "
             f"deficient; dependent rows: {', '.join(names)}. Remove them, or pass "
             "least_squares=True to jl.System to accept consistent redundant constraints "
             "(minimum-norm multipliers)."
         )
     if bool(fail.get("violated", False)):
+        f_raw = np.asarray(d["f_raw"])
+        violated = [i for i in static.unilateral if f_raw[i] < -static.tolerance]
+        shown = ", ".join(f"f[{i}] = {f_raw[i]:.6g}" for i in violated[:6])
         return (
-            f"A unilateral constraint is violated at the initial state (f_i < 0): f(q0) = "
-            f"{np.asarray(d['f_raw'])}, unilateral indices {static.unilateral}. One-sided "
-            "constraints are written f_i(q, t) >= 0."
+            f"A unilateral constraint is violated at the initial state (f_i < 0): {shown} "
+            f"(unilateral indices {static.unilateral}). One-sided constraints are written "
+            "f_i(q, t) >= 0."
         )
     if bool(fail.get("off_manifold", False)):
         return (
             "The initial state is off the constraint manifold beyond the tolerance "
-            f"{_tolerance_text(static.tolerance, np.asarray(d['q']).dtype)}: f(q0) = "
-            f"{np.asarray(d['f'])}, ḟ = J q̇0 + ∂f/∂t = {np.asarray(d['f_dot'])}, velocity "
-            f"constraints g = {np.asarray(d['g'])}. " + _POINTER
+            f"{_tolerance_text(static.tolerance, np.asarray(d['q']).dtype)}: "
+            + ", ".join(
+                _values(label, d[key], index, static.tolerance)
+                for label, key, index in (
+                    ("f(q0)", "f", "f"),
+                    ("ḟ = J q̇0 + ∂f/∂t", "f_dot", "ḟ"),
+                    ("velocity constraints g", "g", "g"),
+                )
+            )
+            + ". "
+            + _POINTER
         )
     if bool(fail.get("wrong_sign", False)):
         return (
             "A unilateral constraint in contact at t0 has a multiplier of the wrong sign: it "
             "would have to pull (λ_i < 0) to hold, so it cannot be in contact. Start the motion "
-            f"off the constraint (f_i > 0) instead. f(q0) = {np.asarray(d['f_raw'])}."
+            f"off the constraint (f_i > 0) instead. {_values('f(q0)', d['f_raw'], 'f')}."
         )
     return None
 
@@ -325,6 +454,7 @@ def validate_initial_state(system, q, qd, t, args, tolerance: float | None):
     if tolerance is None:
         tolerance = default_constraint_tolerance(jnp.result_type(q))
     static = _Static(tuple(system.unilateral), float(tolerance), tuple(_inexact_names(args)))
+    q = check_bodies(system, q, qd, t, args)  # rigid bodies: mass, inertia, R(q0), gimbal lock
     if is_concrete((q, qd, t, args)):
         host = _diagnostics_on_host(system, q, qd, t, args, tolerance)
         if host is not None:
@@ -352,13 +482,14 @@ def initial_state_diagnostics(system, q, qd, t, args, tolerance):
     """``(values, failures)`` of the initial-state check as values (traceable, no callback):
     for programs that return their checks to the host (:func:`raise_for_initial_states`)."""
     d, fail = _diagnostics(system, q, qd, t, args, tolerance)
-    return dict(d, q=q, qd=qd), fail
+    return dict(d, q=q, qd=qd, bodies=body_diagnostics(system, q, qd, t, args)), fail
 
 
 def raise_for_initial_states(system, diagnostics, args, tolerance) -> None:
     """Raise ``ValueError`` on the host for the first failing member of (batched)
     :func:`initial_state_diagnostics`, with the message of :func:`validate_initial_state`."""
     d, fail = jax.device_get(diagnostics)
+    raise_for_bodies(system, d.get("bodies"), d["q"])  # rigid bodies first, as validate_initial_state
     static = _Static(tuple(system.unilateral), float(tolerance), tuple(_inexact_names(args)))
     text = _batched_initial_message(static, (d, fail))
     if text is not None:
@@ -385,11 +516,32 @@ def _state_message(what: str, static: _Static, payload) -> str | None:
     return batch_prefix(index, bad, members) + f"System.{what} is not finite at {state}: {text}"
 
 
-_STATE_CHECKS = ("nonfinite", "nonfinite_args", "mass", "nonfinite_constraints", "rank")
+_STATE_CHECKS = (
+    "nonfinite",
+    "nonfinite_args",
+    "nonfinite_mass",
+    "mass",
+    "nonfinite_jacobian",
+    "nonfinite_constraints",
+    "rank",
+)
+
+#: Ends the singular-M messages: coordinates can be singular where the Lagrangian is not.
+_SINGULAR_COORDINATES = (
+    ", or the coordinates are singular there (Euler angles at gimbal lock: 'zxz' at θ = 0 or π, "
+    "'zyx' at pitch ±π/2; use a quaternion body, which has none, or start away from it)."
+)
 
 _COMPILED = (
     " (Checked inside a compiled program: call outside jit/vmap/grad to see the numbers"
     " and the offending constraints.)"
+)
+
+_NONFINITE_MASS = "The mass matrix M = ∂²L/∂q̇² is not finite (NaN or inf)"
+_NONFINITE_JACOBIAN = (
+    "The constraint Jacobian (J = ∂f/∂q, or A = ∂g/∂q̇) is not finite (NaN or inf): the "
+    "constraint function is not differentiable there (|x| as sqrt(x**2) at 0, a norm of a zero "
+    "vector)"
 )
 
 #: The compiled initial-state checks, in the order of the eager diagnosis, and their static
@@ -397,7 +549,9 @@ _COMPILED = (
 _INITIAL_CAUSES = (
     "nonfinite",
     "nonfinite_args",
+    "nonfinite_mass",
     "mass",
+    "nonfinite_jacobian",
     "nonfinite_constraints",
     "not_diagonal",
     "rank",
@@ -410,9 +564,11 @@ _INITIAL_MESSAGES = tuple(
     for text in (
         "The initial state is not finite.",
         "A parameter in args is not finite (NaN or inf); every floating-point leaf of args must be finite.",
+        _NONFINITE_MASS + " at the initial state.",
         "The mass matrix M = ∂²L/∂q̇² is singular or not positive definite at the initial state. "
         "The Lagrangian is degenerate: every coordinate needs a kinetic term with a positive "
-        "coefficient.",
+        "coefficient" + _SINGULAR_COORDINATES,
+        _NONFINITE_JACOBIAN + " at the initial state, although the constraints are finite.",
         "The constraint functions are not finite at the initial state.",
         "The system declares diagonal_mass=True, but M = ∂²L/∂q̇² has off-diagonal entries.",
         "The constraints are redundant or conflicting at the initial state: the constraint Jacobian "
@@ -430,13 +586,18 @@ _STATE_MESSAGES = tuple(
     for text in (
         "the state is not finite.",
         "a parameter in args is not finite.",
-        "the mass matrix M = ∂²L/∂q̇² is singular or not positive definite.",
+        "the mass matrix M = ∂²L/∂q̇² is not finite.",
+        "the mass matrix M = ∂²L/∂q̇² is singular or not positive definite" + _SINGULAR_COORDINATES,
+        "the constraint Jacobian is not finite, although the constraints are.",
         "the constraint functions are not finite.",
         "the constraints are redundant or conflicting (rank-deficient constraint Jacobian).",
         "the result is not finite: a force, dissipation or constraint function returns NaN or inf, "
         "or the state is outside their domain.",
     )
 )
+
+
+assert len(_INITIAL_MESSAGES) == len(_INITIAL_CAUSES) and len(_STATE_MESSAGES) == len(_STATE_CHECKS) + 1
 
 
 def _error_if_any(x, fail: dict, causes: tuple[str, ...], messages: tuple[str, ...]):
@@ -456,6 +617,7 @@ def check_state_result(system, what: str, out, q, qd, t, args):
 
     tolerance = default_constraint_tolerance(jnp.result_type(q))
     static = _Static(tuple(system.unilateral), tolerance, tuple(_inexact_names(args)))
+    q = check_bodies(system, q, qd, t, args)
     host = None
     if is_concrete((out, q, qd, t, args)):
         host = _diagnostics_on_host(system, q, qd, t, args, tolerance)

@@ -38,7 +38,9 @@ from ._mechanics.kkt import deactivate
 from ._mechanics.linalg import solve_psd_least_squares, solve_spd, spd_solver
 from ._mechanics.lagrangian import as_time, mass_matrix, mass_solver
 from ._solver.forwarding import ForwardingSolver
+from ._misc import is_concrete
 from ._system import System
+from ._tolerances import CONSTRAINT_RCOND, rcond
 
 
 class Baumgarte(eqx.Module):
@@ -235,9 +237,21 @@ def consistent_initial_state(
     free_q = _free_mask(fixed_q, n, q0.dtype, "fixed_q")
     free_qd = _free_mask(fixed_qd, n, q0.dtype, "fixed_qd")
     t0 = jnp.asarray(t0, dtype=q0.dtype)
-    return _consistent_state(
-        system, q0, qd0, t0, as_array_leaves(args), newton_steps, tolerance, free_q, free_qd
-    )
+    args = as_array_leaves(args)
+    if is_concrete((q0, qd0, t0, args)):
+        # Eager: the projection without its compiled checks, then the check on the host, whose
+        # message names the constraint rows and the held coordinates.
+        q, qd, position, velocity, rows = jax.device_get(
+            _projection_and_rows(system, q0, qd0, t0, args, newton_steps, free_q, free_qd)
+        )
+        if is_concrete((q, qd, position, velocity, rows)):
+            text = _projection_message(
+                system, q, position, velocity, rows, tolerance, fixed_q, fixed_qd, free_q, free_qd
+            )
+            if text is not None:
+                raise ValueError(text)
+            return jnp.asarray(q), jnp.asarray(qd)
+    return _consistent_state(system, q0, qd0, t0, args, newton_steps, tolerance, free_q, free_qd)
 
 
 _POSITION_MESSAGE = (
@@ -279,23 +293,182 @@ def position_failure_message(tolerance, dtype) -> str:
     return _POSITION_MESSAGE.format(tolerance=tolerance, dtype=np.dtype(dtype))
 
 
+def _rows_at(system, q, qd, t, args):
+    """``(J, [J; A])``: the holonomic Jacobian (m_h, n) and all velocity-level rows (m, n)."""
+    rows, _ = _constraints.constraint_rows(system, q, qd, t, args)
+    m_h = system.num_holonomic(q, t, args)
+    return rows[:m_h], rows
+
+
 # One compiled program per system and shapes: eager, the Newton loop would dispatch (and compile)
 # every small operation separately.
+@compilation.filter_jit
+def _projection_and_rows(system, q0, qd0, t0, args, newton_steps, free_q, free_qd):
+    q, qd, position, velocity = projection_with_residuals(
+        system, q0, qd0, t0, args, newton_steps, free_q, free_qd
+    )
+    return q, qd, position, velocity, _finite_rows(system, q, qd, q0, qd0, t0, args)
+
+
+def _finite_rows(system, q, qd, q0, qd0, t0, args):
+    """The rows of :func:`_rows_at` at the projected state, or at the given one where the
+    projection went non-finite (a singular correction when nothing can move)."""
+    final = _rows_at(system, q, qd, t0, args)
+    start = _rows_at(system, q0, qd0, t0, args)
+    ok = jnp.all(jnp.isfinite(final[1]))
+    return jax.tree.map(lambda a, b: jnp.where(ok, a, b), final, start)
+
+
+def _free_rank_deficient(rows, free):
+    """Whether ``rows`` restricted to the free columns have lower rank than the rows count
+    (traceable): some row is left without a free coordinate of its own."""
+    if rows.shape[0] == 0:
+        return jnp.asarray(False)
+    held = rows if free is None else rows * free[None, :]
+    sv = jnp.linalg.svd(held, compute_uv=False)
+    threshold = rcond(CONSTRAINT_RCOND, rows.dtype) * jnp.maximum(jnp.max(jnp.abs(rows)), 1e-300)
+    return jnp.sum(sv > threshold) < rows.shape[0]
+
+
+_TOO_MANY_HELD_Q = (
+    "consistent_initial_state: more coordinates are held in fixed_q than the constraints allow: "
+    "the position constraint Jacobian restricted to the free coordinates is rank deficient, so "
+    "some constraint row is left without a free coordinate. Hold fewer coordinates. (Raised "
+    "inside a compiled program: call it outside jit/vmap/grad to see which rows.)"
+)
+_TOO_MANY_HELD_QD = (
+    "consistent_initial_state: more velocities are held in fixed_qd than the velocity "
+    "constraints allow: the constraint rows restricted to the free velocities are rank "
+    "deficient, so some row is left without a free velocity. Hold fewer. (Raised inside a "
+    "compiled program: call it outside jit/vmap/grad to see which rows.)"
+)
+
+
 @compilation.filter_jit
 def _consistent_state(system, q0, qd0, t0, args, newton_steps, tolerance, free_q, free_qd):
     q, qd, position, velocity = projection_with_residuals(
         system, q0, qd0, t0, args, newton_steps, free_q, free_qd
     )
+    jac, rows = _finite_rows(system, q, qd, q0, qd0, t0, args)
     if system.holonomic is not None:
-        q = eqx.error_if(q, ~(position <= tolerance), position_failure_message(tolerance, q0.dtype))
+        failed = ~(position <= tolerance)
+        cause = jnp.where(_free_rank_deficient(jac, free_q), 0, 1) if free_q is not None else 1
+        q = eqx.branched_error_if(
+            q, failed, cause, (_TOO_MANY_HELD_Q, position_failure_message(tolerance, q0.dtype))
+        )
     if free_qd is not None:
-        qd = eqx.error_if(
+        cause = jnp.where(_free_rank_deficient(rows, free_qd), 0, 1)
+        qd = eqx.branched_error_if(
             qd,
             ~(velocity <= tolerance),
-            "consistent_initial_state: the velocity constraints cannot hold with the velocities "
-            "in fixed_qd held (too many held, or incompatible values).",
+            cause,
+            (
+                _TOO_MANY_HELD_QD,
+                "consistent_initial_state: the velocity constraints cannot hold with the velocities "
+                "in fixed_qd held at these values (incompatible values).",
+            ),
         )
     return q, qd
+
+
+def _names(indices) -> str:
+    return ", ".join(f"q[{int(i)}]" for i in indices)
+
+
+def _rows_without_free(rows, free, m_h, level: str, fixed, fixed_name: str) -> str | None:
+    """If ``rows`` restricted to the free columns are rank deficient: the message naming the
+    rows left without a free coordinate, and which held coordinates would give them one."""
+    rows = np.asarray(rows)
+    free_mask = np.ones(rows.shape[1], bool) if free is None else np.asarray(free) > 0
+    if rows.shape[0] == 0:
+        return None
+    threshold = rcond(CONSTRAINT_RCOND, rows.dtype) * max(float(np.max(np.abs(rows))), 1e-300)
+
+    def rank(matrix):
+        if matrix.size == 0:
+            return 0
+        return int(np.sum(np.linalg.svd(matrix, compute_uv=False) > threshold))
+
+    restricted = rows[:, free_mask]
+    r = rank(restricted)
+    m = rows.shape[0]
+    if r == m:
+        return None
+    name = lambda i: f"holonomic[{i}]" if i < m_h else f"velocity[{i - m_h}]"  # noqa: E731
+    kept, left = [], []
+    for i in range(m):
+        if rank(np.array(kept + [restricted[i]])) == len(kept) + 1:
+            kept.append(restricted[i])
+        else:
+            alone = not np.any(np.abs(restricted[i]) > threshold)
+            involved = np.flatnonzero(np.abs(rows[i]) > threshold)
+            left.append(
+                f"{name(i)} (it involves only held {'coordinates' if level == 'q' else 'velocities'} "
+                f"{_names(involved) if level == 'q' else _names(involved).replace('q[', 'q̇[')})"
+                if alone
+                else f"{name(i)} (in the free {'coordinates' if level == 'q' else 'velocities'} it is "
+                "a combination of the rows before it)"
+            )
+    held = np.flatnonzero(~free_mask)
+    helps = [int(k) for k in held if rank(rows[:, free_mask | (np.arange(rows.shape[1]) == k)]) > r]
+    symbol = "q" if level == "q" else "q̇"
+    free_names = ", ".join(f"{symbol}[{int(i)}]" for i in np.flatnonzero(free_mask)) or "none"
+    text = (
+        f"consistent_initial_state: {fixed_name}={tuple(int(i) for i in fixed)} holds more "
+        f"{'coordinates' if level == 'q' else 'velocities'} than the constraints allow: "
+        f"{int(np.sum(free_mask))} free ({free_names}) for {m} "
+        f"{'position constraints' if level == 'q' else 'velocity-level constraint rows'}, and the "
+        f"constraint rows restricted to the free ones have rank {r} < {m}. Left without a free "
+        f"{'coordinate' if level == 'q' else 'velocity'}: {'; '.join(left)}."
+    )
+    if helps:
+        text += (
+            f" Release one of {', '.join(f'{symbol}[{k}]' for k in helps)} from {fixed_name} "
+            f"(each gives those rows a free {'coordinate' if level == 'q' else 'velocity'}), or "
+            "drop the redundant constraints."
+        )
+    else:
+        text += f" Remove entries from {fixed_name}, or drop the redundant constraints."
+    return text
+
+
+def _projection_message(system, q, position, velocity, rows, tolerance, fixed_q, fixed_qd, free_q, free_qd):
+    """The error of an eager :func:`consistent_initial_state`, or ``None`` if it succeeded."""
+    jac, all_rows = (np.asarray(x) for x in rows)
+    m_h = jac.shape[0]
+    fixed_q = (fixed_q,) if isinstance(fixed_q, int) else tuple(fixed_q)
+    fixed_qd = (fixed_qd,) if isinstance(fixed_qd, int) else tuple(fixed_qd)
+    if system.holonomic is not None and not float(position) <= tolerance:
+        if free_q is not None:
+            text = _rows_without_free(jac, free_q, m_h, "q", fixed_q, "fixed_q")
+            if text is not None:
+                residual = float(position)
+                return text + (
+                    f" (The position residual stays at max |f| = {residual:.3g}.)"
+                    if np.isfinite(residual)
+                    else " (The projection is singular: it returns NaN.)"
+                )
+        return (
+            position_failure_message(tolerance, np.asarray(q).dtype)
+            + f" The residual after the Newton steps is max |f| = {float(position):.3g}"
+            + f" at q = {np.asarray(q)}; the projection starts from the given q0, so a guess "
+            "nearer the manifold may converge, or the constraints cannot all hold at once."
+        )
+    if free_qd is not None and not float(velocity) <= tolerance:
+        text = _rows_without_free(all_rows, free_qd, m_h, "qd", fixed_qd, "fixed_qd")
+        if text is not None:
+            residual = float(velocity)
+            return text + (
+                f" (The velocity residual stays at max |(ḟ, g)| = {residual:.3g}.)"
+                if np.isfinite(residual)
+                else " (The projection is singular: it returns NaN.)"
+            )
+        return (
+            "consistent_initial_state: the velocity constraints cannot hold with the velocities "
+            f"in fixed_qd={fixed_qd} held at these values (residual max |(ḟ, g)| = "
+            f"{float(velocity):.3g}): the held rates are incompatible with each other."
+        )
+    return None
 
 
 def stages_for_forward_mode(solver, kind="lax"):

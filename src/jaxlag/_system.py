@@ -117,8 +117,21 @@ class System(eqx.Module):
         def shape_of(fn, *state):
             return jax.eval_shape(lambda *s: fn(*s, t=t, args=args), *state).shape
 
-        out = shape_of(self.lagrangian, q, qd)
+        try:
+            out = shape_of(self.lagrangian, q, qd)
+        except Exception as error:
+            # A per-member parameter that simulate_batch was not told about (args_axes) often
+            # breaks L's shapes before it can return a non-scalar: name it if it is the cause.
+            culprits = _array_args_behind(self.lagrangian, q, qd, t, args)
+            if culprits:
+                raise ValueError(
+                    _batched_args_message(None, culprits, f"{type(error).__name__}: {error}")
+                ) from error
+            raise
         if out != ():
+            culprits = _array_args_behind(self.lagrangian, q, qd, t, args)
+            if culprits:
+                raise ValueError(_batched_args_message(out, culprits))
             raise ValueError(
                 f"The Lagrangian must return a scalar; it returned shape {out}. "
                 "(Did you forget a sum, e.g. 0.5 * m * jnp.sum(qd**2)?)"
@@ -237,6 +250,56 @@ class System(eqx.Module):
     ) -> Scalar:
         """``q̇·Q``: power delivered by external forces."""
         return self._at_state(_mechanics.input_power, q, qd, t, args)
+
+
+def _array_args_behind(fn, q, qd, t, args) -> list[tuple[tuple, tuple]]:
+    """The array leaves of ``args`` that make ``fn`` non-scalar: those whose replacement by
+    their first entry along the leading axis makes it return a scalar (``(path, shape)``)."""
+    found = []
+    for path, leaf in jax.tree_util.tree_leaves_with_path(args):
+        shape = getattr(leaf, "shape", ())
+        if len(shape) == 0 or shape[0] == 0:
+            continue
+
+        def first(p, x, path=path):
+            return x[0] if p == path else x
+
+        try:
+            one = jax.tree_util.tree_map_with_path(first, args)
+            out = jax.eval_shape(lambda a, b: fn(a, b, t=t, args=one), q, qd).shape
+        except Exception:  # noqa: BLE001 - only a diagnosis: a leaf whose removal breaks L is not it
+            continue
+        if out == ():
+            found.append((path, tuple(shape)))
+    return found
+
+
+def _axes_hint(path) -> str:
+    """``{'k': 0}`` for a path of dict keys (the ``args_axes`` that batches that leaf)."""
+    text = "0"
+    for key in reversed(path):
+        if not isinstance(key, jax.tree_util.DictKey):
+            return "a pytree prefix of args with 0 at that leaf"
+        text = f"{{{key.key!r}: {text}}}"
+    return text
+
+
+def _batched_args_message(out, culprits, error: str | None = None) -> str:
+    names = ", ".join(f"args{jax.tree_util.keystr(path)} (shape {shape})" for path, shape in culprits)
+    path, shape = culprits[0]
+    name = f"args{jax.tree_util.keystr(path)}"
+    what = (
+        f"The Lagrangian must return a scalar; it returned shape {out}"
+        if error is None
+        else f"The Lagrangian failed ({error})"
+    )
+    return (
+        f"{what} because of {names}: with one entry of {name} it returns a scalar. If {name} "
+        "holds one value per batch member of jl.simulate_batch, mark it batched there: "
+        f"args_axes={_axes_hint(path)} (every "
+        "other leaf stays shared; args_axes=0 batches them all). If it is a vector parameter "
+        "of one system, index it or contract it in L (e.g. jnp.sum(k * q**2))."
+    )
 
 
 # Compiled once per (quantity, system, shapes): eager calls of the methods above are fast, and

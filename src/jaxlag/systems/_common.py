@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 import functools
 from collections.abc import Mapping
 from types import MappingProxyType
@@ -45,13 +46,70 @@ def parameters(factory, args) -> dict:
             f"{sorted(defaults)} (missing keys take their defaults); got {type(args).__name__}."
         )
     if not factory.allow_extra:
-        unknown = sorted(set(args) - set(defaults))
-        if unknown:
-            raise KeyError(
-                f"jaxlag.systems.{factory.__name__}: unknown parameter(s) {unknown}; its "
-                f"parameters are {sorted(defaults)}."
-            )
+        check_keys(factory, args)
     return {**defaults, **args}
+
+
+_WORDS = {"l": "length", "m": "mass", "g": "gravity", "R": "radius", "I": "inertia"}
+
+
+class UnknownParameterError(KeyError):
+    """A key of ``args`` that a ready model does not know (a ``KeyError`` whose message prints
+    as written, not quoted)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
+
+
+class KeyReads(Mapping):
+    """A read-only view of a dict that records which keys are read (``[k]``, ``get``, ``in``);
+    iterating over it (``keys()``, ``items()``, ``{**args}``) counts as reading every key."""
+
+    def __init__(self, data: Mapping):
+        self._data = data
+        self.read: set = set()
+        self.everything = False
+
+    def __getitem__(self, key):
+        self.read.add(key)
+        return self._data[key]
+
+    def __contains__(self, key) -> bool:
+        self.read.add(key)
+        return key in self._data
+
+    def __iter__(self):
+        self.everything = True
+        return iter(self._data)
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+
+def check_keys(factory, args, read_elsewhere=(), reader: str = "") -> None:
+    """Refuse the keys of ``args`` that are not parameters of the model (nor in
+    ``read_elsewhere``, the keys that ``reader``, e.g. a controller, reads), naming for each
+    the closest parameter: a misspelt key would otherwise leave its default silently in use."""
+    known = set(factory.defaults)
+    unknown = sorted(str(k) for k in set(args) - known - set(read_elsewhere))
+    if not unknown:
+        return
+    # One-letter parameters are matched by what they stand for too ('lenght' -> 'l').
+    spelled = {word: k for k, word in _WORDS.items() if k in known}
+    close = []
+    for key in unknown:
+        match = difflib.get_close_matches(key, sorted(known) + sorted(spelled), n=1, cutoff=0.5) or [
+            k for k in sorted(known) if k.lower() == key.lower()
+        ]
+        if match:
+            close.append(f"{key!r} -> did you mean {spelled.get(match[0], match[0])!r}?")
+    hint = f" ({'; '.join(close)})" if close else ""
+    used = f" nor read by {reader}" if reader else ""
+    raise UnknownParameterError(
+        f"jaxlag.systems.{factory.__name__}: unknown parameter(s) {unknown}{hint}, not parameters "
+        f"of the model{used}; its parameters are {sorted(known)} (missing ones take their "
+        "defaults, so a misspelt key would leave the default in use)."
+    )
 
 
 def check_form(name: str, form: str, allowed: tuple[str, ...]) -> str:

@@ -7,6 +7,7 @@ the cart-pole's, measured from the upward vertical (upright is 0).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Callable
 
 import jax.numpy as jnp
@@ -14,7 +15,7 @@ import jax.numpy as jnp
 from ..coordinates import RigidBody2D, lagrangian_from_positions, planar_chain
 from .._conventions import wrap_state_function
 from .._system import System
-from ._common import check_form, model, parameters
+from ._common import KeyReads, check_form, check_keys, model, parameters
 
 _FORMS = ("generalized", "cartesian")
 
@@ -188,10 +189,14 @@ def cart_pole(control: Callable | None = None) -> System:
     The input is a horizontal force ``u`` on the cart (generalized force ``(u, 0)``):
     ``control(q, qd, [t], [args])`` if given, else the parameter ``force`` (a constant; select it
     for a linearization's input matrix with ``inputs=lambda a: a["force"]``). Extra keys in
-    ``args`` are allowed (controller gains). Parameters: ``M``, ``m``, ``l``, ``g``, ``force``.
+    ``args`` are allowed for the keys that ``control`` reads (controller gains); any other key
+    is refused, with the closest parameter name. Parameters: ``M``, ``m``, ``l``, ``g``,
+    ``force``.
     """
 
     def p_of(args):
+        if control is None and isinstance(args, Mapping):
+            check_keys(cart_pole, args)
         return parameters(cart_pole, args)
 
     def cart(q):
@@ -214,9 +219,24 @@ def cart_pole(control: Callable | None = None) -> System:
         if user is None:
             u = jnp.asarray(p_of(args)["force"], q.dtype)
         else:
-            u = jnp.asarray(user(q, qd, t=t, args=args), q.dtype)
+            u = jnp.asarray(_call_recording_reads(user, q, qd, t, args), q.dtype)
             if u.shape != ():
                 raise ValueError(f"The cart-pole control must return a scalar force; got shape {u.shape}.")
         return jnp.stack([u, jnp.zeros((), q.dtype)])
 
     return System(lagrangian, forces=forces)
+
+
+def _call_recording_reads(user, q, qd, t, args):
+    """``user(q, qd, t=t, args=args)``; with a dict ``args``, also refuse the keys that neither
+    the cart-pole nor the control reads (a misspelt parameter). Runs while tracing only."""
+    if not isinstance(args, Mapping):
+        return user(q, qd, t=t, args=args)
+    reads = KeyReads(args)
+    try:
+        out = user(q, qd, t=t, args=reads)
+    except Exception:  # noqa: BLE001 - a control that needs a real dict: call it with one, no check
+        return user(q, qd, t=t, args=args)
+    if not reads.everything:
+        check_keys(cart_pole, args, reads.read, "the control")
+    return out
