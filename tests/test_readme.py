@@ -1,5 +1,6 @@
 """Every ```python block of README.md and of the pages under docs/ runs, on its own, in a fresh
-namespace, with no preamble.
+namespace, with no preamble; a cookbook page (docs/cookbook/) runs as one script: its blocks in
+order, in one namespace, in a fresh working directory (the figures they save land there).
 
 So the README cannot drift from the code: a renamed function, a changed signature or a snippet that
 relies on names defined in another block fails here. Each block is one test whose id is the heading
@@ -56,14 +57,28 @@ def _test_id(heading, index):
 
 
 BLOCKS = python_blocks(README.read_text(encoding="utf-8"))
-DOCS = sorted((README.parent / "docs").glob("*.md"))
-DOC_BLOCKS = [(page, *block) for page in DOCS for block in python_blocks(page.read_text("utf-8"))]
+DOCS = sorted((README.parent / "docs").rglob("*.md"))
+COOKBOOK = README.parent / "docs" / "cookbook"
+SCRIPTS = [page for page in DOCS if page.parent == COOKBOOK and python_blocks(page.read_text("utf-8"))]
+DOC_BLOCKS = [
+    (page, *block) for page in DOCS if page not in SCRIPTS for block in python_blocks(page.read_text("utf-8"))
+]
+
+
+def page_script(page):
+    """``(first_line, source)`` of a cookbook page: its python blocks in order, each at its own line
+    numbers (the lines between blocks are blank), so that tracebacks point into the page."""
+    blocks = python_blocks(page.read_text("utf-8"))
+    lines = []
+    for _, _, first_line, source in blocks:
+        lines += [""] * (first_line - 1 - len(lines)) + source.splitlines()
+    return blocks[0][2], "\n".join(lines[blocks[0][2] - 1 :]) + "\n"
 
 
 def test_the_readme_has_python_blocks():
     text = README.read_text(encoding="utf-8")
     opened = sum(1 for line in text.splitlines() if line.strip() == "```python")
-    assert len(BLOCKS) == opened >= 10, [b[0] for b in BLOCKS]
+    assert len(BLOCKS) == opened >= 1, [b[0] for b in BLOCKS]
 
 
 @pytest.fixture
@@ -93,8 +108,18 @@ def test_docs_block_runs(page, heading, index, first_line, source, x64_off, tmp_
     _run_block(page, heading, index, first_line, source, tmp_path)
 
 
+@pytest.mark.parametrize("page", SCRIPTS, ids=[page.stem for page in SCRIPTS])
+def test_cookbook_page_runs(page, x64_off, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # plt.savefig("name.png") writes here
+    first_line, source = page_script(page)
+    _run_block(page, page.stem, 0, first_line, source, tmp_path)
+    saved = source.count("plt.savefig(")
+    assert len(list(tmp_path.glob("*.png"))) >= saved >= 1, f"{page.name}: saves no figure"
+
+
 def test_docs_pages_exist():
-    assert {p.stem for p in DOCS} >= {"compile-time", "changelog"}
+    assert {p.stem for p in DOCS} >= {"compile-time", "changelog", "index", "concepts"}
+    assert len(SCRIPTS) >= 10, [page.stem for page in SCRIPTS]
 
 
 def _run_block(path, heading, index, first_line, source, tmp_path):
@@ -102,12 +127,12 @@ def _run_block(path, heading, index, first_line, source, tmp_path):
         assert 'jax.config.update("jax_enable_x64", True)' in source, (
             f"{path.name} line {first_line} ({heading!r}): the block uses JAX but does not enable x64 itself"
         )
-    if "enable_compilation_cache" in source:
-        # It changes JAX's configuration for the whole process: run it in its own process, with
-        # a cache directory of its own.
+    if "enable_compilation_cache" in source or "os.environ[" in source:
+        # It changes JAX's configuration for the whole process, or sets an environment variable
+        # read at import: run it in its own process, with a cache directory of its own.
         env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path)}
         out = subprocess.run(
-            [sys.executable, "-c", source], env=env, capture_output=True, text=True, timeout=600
+            [sys.executable, "-c", source], env=env, capture_output=True, text=True, timeout=600, cwd=tmp_path
         )
         assert out.returncode == 0, f"{path.name} line {first_line}:\n{out.stderr[-3000:]}"
         return
