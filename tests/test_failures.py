@@ -187,6 +187,13 @@ def test_one_failing_batch_member():
         jl.simulate_batch(POWER, q0s, qd0s, TS)
     traj = jl.simulate_batch(POWER, q0s, qd0s, TS, throw=False)
     np.testing.assert_array_equal(traj.failure.code, [1, 0, 1])
+    # The public enumeration names the codes, also inside jit.
+    np.testing.assert_array_equal(traj.failure.code == jl.FailureCode.NONFINITE, [True, False, True])
+    completed = jax.jit(lambda f: f.code == jl.FailureCode.COMPLETED)(traj.failure)
+    np.testing.assert_array_equal(completed, [False, True, False])
+    assert [jl.FailureCode(int(c)).name for c in traj.failure.code] == ["NONFINITE", "COMPLETED", "NONFINITE"]
+    assert "equations of motion became non-finite" in jl.FailureCode.NONFINITE.message
+    assert jl.FailureCode.COMPLETED.message == ""
     assert np.all(np.isfinite(traj.q[1]))
     alone = jl.simulate(POWER, q0s[1], qd0s[1], TS)
     np.testing.assert_allclose(traj.q[1], alone.q, rtol=0, atol=1e-12)

@@ -32,7 +32,7 @@ from ._cache import (
 )
 from ._checks import Checks as Checks
 from ._compile import compiler_options as compiler_options
-from ._errors import SimulationError as SimulationError
+from ._errors import FailureCode as FailureCode, SimulationError as SimulationError
 from ._events import (
     Event as Event,
     EventLog as EventLog,

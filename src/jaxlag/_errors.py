@@ -33,6 +33,7 @@ raises :class:`SimulationError` (``throw=True``, the default):
 
 from __future__ import annotations
 
+import enum
 from typing import Any, NamedTuple
 
 import diffrax
@@ -48,8 +49,42 @@ from ._mechanics.kkt import accelerations_and_multipliers
 from ._mechanics.lagrangian import mass_matrix, unconstrained_accelerations
 from ._tolerances import MASS_RCOND, rcond
 
-#: The results enumeration of a simulation: ``Failure.code`` takes one of these values.
-NONE, NONFINITE, MAX_STEPS, SOLVER, MAX_SEGMENTS, COLLAPSED = 0, 1, 2, 3, 4, 5
+
+class FailureCode(enum.IntEnum):
+    """How a simulation ended: the values of ``traj.failure.code``.
+
+    ``traj.failure.code`` is an ``int32`` array (one entry per batch member); compare it with
+    these members, e.g. ``traj.failure.code == jl.FailureCode.MAX_STEPS``, inside or outside
+    ``jit``. Each member's :attr:`message` is the static message raised from a compiled program.
+
+    - ``COMPLETED`` (0): the run reached its end time (or a terminal event).
+    - ``NONFINITE`` (1): the equations of motion became non-finite (NaN or inf) and a smaller
+      step did not help.
+    - ``MAX_STEPS`` (2): ``max_steps`` was reached before the end time.
+    - ``SOLVER`` (3): the diffrax solver reported another failure (``traj.failure.result``).
+    - ``MAX_SEGMENTS`` (4): more segments (events, releases, contacts) were needed than
+      ``jl.Events(max_segments=...)`` allows.
+    - ``STEP_SIZE_COLLAPSED`` (5): the step size fell to round-off of ``t`` although every trial
+      state was finite (a finite-time singularity, stiffness below the dtype's time resolution,
+      or a state stuck at a discontinuous force).
+    """
+
+    COMPLETED = 0
+    NONFINITE = 1
+    MAX_STEPS = 2
+    SOLVER = 3
+    MAX_SEGMENTS = 4
+    STEP_SIZE_COLLAPSED = 5
+
+    @property
+    def message(self) -> str:
+        """The static message raised for this result inside a compiled program."""
+        return RESULT_MESSAGES[self.value]
+
+
+NONE, NONFINITE, MAX_STEPS = FailureCode.COMPLETED, FailureCode.NONFINITE, FailureCode.MAX_STEPS
+SOLVER, MAX_SEGMENTS = FailureCode.SOLVER, FailureCode.MAX_SEGMENTS
+COLLAPSED = FailureCode.STEP_SIZE_COLLAPSED
 
 #: Inside a compiled program the message is static (it names the cause); the numbers stay in the
 #: returned object.
@@ -59,7 +94,7 @@ COMPILED_HINT = (
     "for the full diagnosis.)"
 )
 
-#: The static message of each result, indexed by its code.
+#: The static message of each result, indexed by its :class:`FailureCode`.
 RESULT_MESSAGES: tuple[str, ...] = (
     "",
     "jaxlag: the simulation stopped: the equations of motion became non-finite (NaN or inf) and "
@@ -75,6 +110,7 @@ RESULT_MESSAGES: tuple[str, ...] = (
     "blowing up), stiffness that needs steps below the time resolution of the dtype, or a "
     "discontinuous force." + COMPILED_HINT,
 )
+assert len(RESULT_MESSAGES) == len(FailureCode)
 
 
 class SimulationError(RuntimeError):
@@ -83,10 +119,11 @@ class SimulationError(RuntimeError):
 
 # ----------------------------------------------------------------------------- the record
 class Failure(eqx.Module):
-    """How a simulation ended. ``code``: 0 completed, 1 non-finite equations of motion,
-    2 ``max_steps`` reached, 3 other solver failure (``result``), 4 ``max_segments`` reached,
-    5 step size collapsed. ``t``: time reached; ``dt``: last step size tried; ``q``, ``qd``:
-    last accepted state; ``t0``, ``t1``: the interval; ``num_steps``: steps taken."""
+    """How a simulation ended. ``code``: a :class:`FailureCode` value (0 completed, 1 non-finite
+    equations of motion, 2 ``max_steps`` reached, 3 other solver failure (``result``),
+    4 ``max_segments`` reached, 5 step size collapsed). ``t``: time reached; ``dt``: last step
+    size tried; ``q``, ``qd``: last accepted state; ``t0``, ``t1``: the interval; ``num_steps``:
+    steps taken."""
 
     code: Any
     t: Any
