@@ -23,3 +23,7 @@ jax.config.update("jax_num_cpu_devices", 4)
 # As equinox's and diffrax's test suites: implicit rank promotion is an error, so that a
 # broadcasting bug in jaxlag (or a test) cannot pass silently.
 jax.config.update("jax_numpy_rank_promotion", "raise")
+# And, as in equinox's and diffrax's suites, strict dtype promotion: jaxlag never mixes dtypes
+# implicitly (an int64 index against an int32 code, a float64 parameter in a float32 run). The
+# pages of the docs run with JAX's default ("standard") promotion, as users' scripts do.
+jax.config.update("jax_numpy_dtype_promotion", "strict")

@@ -188,7 +188,7 @@ def test_memory_grows_linearly_in_the_batch(kind):
         q0, qd0 = jnp.array([jnp.sin(0.2), jnp.cos(0.2)]), jnp.zeros(2)
 
     def memory(batch):
-        states = jnp.tile(q0, (batch, 1)) * (1.0 + 0.01 * jnp.arange(batch))[:, None]
+        states = jnp.tile(q0, (batch, 1)) * (1.0 + 0.01 * jnp.arange(batch, dtype=float))[:, None]
         run = jax.jit(lambda s: simulate_batch(system, s, qd0, TS, **kwargs).q)
         stats = run.lower(states).compile().memory_analysis()
         return {

@@ -57,8 +57,8 @@ def general_path(lagrangian):
 
 
 def chain_state(n):
-    theta = 0.6 + 0.25 * jnp.sin(1.3 * jnp.arange(n))
-    omega = 0.3 * jnp.cos(0.7 * jnp.arange(n))
+    theta = 0.6 + 0.25 * jnp.sin(1.3 * jnp.arange(n, dtype=float))
+    omega = 0.3 * jnp.cos(0.7 * jnp.arange(n, dtype=float))
     d = jnp.stack([jnp.sin(theta), -jnp.cos(theta)], axis=1)
     w = omega[:, None] * jnp.stack([jnp.cos(theta), jnp.sin(theta)], axis=1)
     return jnp.cumsum(d, axis=0).reshape(-1), jnp.cumsum(w, axis=0).reshape(-1)
@@ -231,7 +231,7 @@ def test_args_with_keys_and_integers():
     # Non-float leaves in args (a PRNG key, an integer array) neither break the analysis nor the
     # once-per-call evaluation; the trajectory is the closed-form free fall y = 1 − g t²/2.
     def lagrangian(q, qd, args):
-        noise = 0.0 * jax.random.normal(args["key"], ()) * args["count"][0]
+        noise = 0.0 * jax.random.normal(args["key"], ()) * args["count"][0].astype(float)
         return 0.5 * jnp.sum(qd**2) - args["g"] * q[1] + noise
 
     args = {"g": 9.81, "key": jax.random.key(0), "count": jnp.array([3])}

@@ -148,9 +148,12 @@ def test_damping_coefficient_of_an_oscillator():
 
 def test_optax_path_decreases_the_loss():
     experiment = jl.Experiment(TS, observe_bob(TRUE), Q0, QD0)
-    result = jl.fit(
-        PENDULUM, START, experiment, observe=bob, optimizer=optax.adam(0.05), max_steps=60, progress=True
-    )
+    # optax's adam raises an integer step count to a float power: not clean under the suite's
+    # strict dtype promotion, so this test runs with JAX's default promotion (as users do).
+    with jax.numpy_dtype_promotion("standard"):
+        result = jl.fit(
+            PENDULUM, START, experiment, observe=bob, optimizer=optax.adam(0.05), max_steps=60, progress=True
+        )
     assert len(result.loss_history) == 61
     assert result.loss_history[-1] < 0.05 * result.loss_history[0]
 

@@ -140,7 +140,10 @@ def _run_block(path, heading, index, first_line, source, tmp_path):
     code = compile("\n" * (first_line - 1) + source, str(path), "exec")
     namespace = {"__name__": f"readme_block_{index}"}
     try:
-        exec(code, namespace)
+        # A user's script runs with JAX's default ("standard") dtype promotion, not the suite's
+        # strict one: the pages show code as users write it (0.1 * jnp.arange(5)).
+        with jax.numpy_dtype_promotion("standard"):
+            exec(code, namespace)
     finally:
         if "matplotlib.pyplot" in sys.modules:
             import matplotlib.pyplot as plt

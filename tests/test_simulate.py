@@ -359,3 +359,26 @@ def test_checks_times_false_compiles_no_check_of_traced_save_times():
                 jnp.array([0.0, 0.5, 0.4])
             )
         )
+
+
+def test_python_float_parameters_take_the_state_dtype():
+    # A Python float in args is weakly typed: in a float32 run it is float32, so the user's
+    # functions are not promoted to float64 (under the suite's strict promotion a float64
+    # parameter against float32 coordinates would be an error). NumPy arrays keep their dtype.
+    seen = []
+
+    def pendulum(q, qd, args):
+        seen.append(args["g"].dtype)
+        return 0.5 * qd[0] ** 2 + args["g"] * jnp.cos(q[0])
+
+    system = jl.System(pendulum)
+    q0, qd0 = jnp.array([0.5], jnp.float32), jnp.zeros(1, jnp.float32)
+    ts = jnp.linspace(0.0, 1.0, 3, dtype=jnp.float32)
+    traj = jl.simulate(system, q0, qd0, ts, args={"g": 9.81})
+    batch = jl.simulate_batch(system, q0[None], qd0[None], ts, args={"g": 9.81}, method=jl.Ensemble())
+    assert traj.q.dtype == batch.q.dtype == jnp.float32
+    assert set(seen) == {jnp.dtype(jnp.float32)}
+    np.testing.assert_allclose(traj.q, batch.q[0], atol=1e-5)
+    seen.clear()
+    jl.simulate(system, q0.astype(jnp.float64), qd0.astype(jnp.float64), ts, args={"g": 9.81})
+    assert set(seen) == {jnp.dtype(jnp.float64)}

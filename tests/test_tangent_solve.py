@@ -119,7 +119,7 @@ def test_constant_steps_and_baumgarte(solver, tangent_solves):
             baumgarte=jl.Baumgarte(alpha=5.0, beta=6.0),
             projection=None,
         )
-        return jnp.sum(traj.q**2 * jnp.arange(1, 3)[None, :])
+        return jnp.sum(traj.q**2 * jnp.arange(1.0, 3.0)[None, :])
 
     args = {"g": 9.81, "l": 1.0}
     got = jax.grad(loss)(args)

@@ -114,7 +114,7 @@ def test_energy_error_bounded_where_runge_kutta_drifts():
         # drift would make it ~10x larger); measured 0.0058 -> 0.0049 and 0.00542 -> 0.00542.
         assert late <= 1.2 * early
         assert late < 1e-2
-        ts = jnp.arange(n // 100 + 1) * h * 100
+        ts = jnp.arange(n // 100 + 1, dtype=float) * h * 100
         rk = jl.simulate(
             system,
             a,

@@ -178,7 +178,7 @@ def as_float_state(q0, qd0):
     return q0, qd0
 
 
-def as_array_leaves(tree):
+def as_array_leaves(tree, dtype=None):
     """Python floats and NumPy arrays become (strongly typed) JAX arrays.
 
     Used on ``args`` before compiled entry points, so that calling again with new parameter
@@ -187,13 +187,21 @@ def as_array_leaves(tree):
     that ``jax.grad`` made an array) become strongly typed the same way, so that a derivative
     traces the programs of the plain call (not a second variant). Python ints and bools stay
     static: they may drive Python control flow in user functions.
+
+    ``dtype``: the floating dtype of the state. A Python float (or a weakly typed JAX float)
+    takes it, as JAX's weak typing would, so that ``args={"g": 9.81}`` in a float32 simulation
+    is float32 and does not promote the user's functions to float64. NumPy and strongly typed
+    JAX arrays keep the dtype they were given.
     """
 
     def convert(x):
+        if dtype is not None and isinstance(x, float):
+            return as_jax_array(x, dtype)
         if isinstance(x, (float, complex, np.ndarray, np.floating)):
             return as_jax_array(x, np.result_type(x))  # converted on the host, no compilation
         if isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.inexact) and jax.typeof(x).weak_type:
-            return jax.lax.convert_element_type(x, x.dtype)
+            weak_float = dtype is not None and jnp.issubdtype(x.dtype, jnp.floating)
+            return jax.lax.convert_element_type(x, dtype if weak_float else x.dtype)
         return x
 
     return jax.tree.map(convert, tree)

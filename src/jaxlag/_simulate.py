@@ -507,7 +507,7 @@ def simulate(
     if not isinstance(checks, Checks):
         raise TypeError(f"checks must be a jl.Checks; got {type(checks).__name__}.")
     q0, qd0 = as_float_state(q0, qd0)
-    args = as_array_leaves(args)
+    args = as_array_leaves(args, q0.dtype)
     user_saveat = saveat is not None
     if ts is not None:
         ts = as_jax_array(ts, q0.dtype)

@@ -237,7 +237,7 @@ def consistent_initial_state(
     free_q = _free_mask(fixed_q, n, q0.dtype, "fixed_q")
     free_qd = _free_mask(fixed_qd, n, q0.dtype, "fixed_qd")
     t0 = jnp.asarray(t0, dtype=q0.dtype)
-    args = as_array_leaves(args)
+    args = as_array_leaves(args, q0.dtype)
     if is_concrete((q0, qd0, t0, args)):
         # Eager: the projection without its compiled checks, then the check on the host, whose
         # message names the constraint rows and the held coordinates.

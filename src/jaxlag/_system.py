@@ -176,7 +176,7 @@ class System(eqx.Module):
         q, qd = jnp.asarray(q), jnp.asarray(qd)
         self.check(q, qd, t, args)
         t = _mechanics.as_time(t, q)
-        args = as_array_leaves(args)
+        args = as_array_leaves(args, q.dtype if jnp.issubdtype(q.dtype, jnp.floating) else None)
         out = _evaluate_at_state(quantity, self, q, qd, t, args)
         if quantity in _SOLVED:
             # The KKT solve turns a singular M or redundant rows into NaN: say so instead.

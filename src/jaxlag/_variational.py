@@ -646,7 +646,7 @@ def simulate_variational(
     if not jnp.issubdtype(q0.dtype, jnp.floating):
         q0 = q0.astype(jnp.result_type(float))
     qd0 = jnp.asarray(qd0, q0.dtype)
-    args = as_array_leaves(args)
+    args = as_array_leaves(args, q0.dtype)
     t0 = jnp.asarray(t0, q0.dtype)
     dt = jnp.asarray(dt, q0.dtype)
     if is_concrete(dt) and not float(dt) > 0:

@@ -260,7 +260,7 @@ def simulate_batch(
             raise ValueError(
                 f"{name} must have shape (B, n) (one row per batch member) or (n,) (shared); got {x.shape}."
             )
-    args = as_array_leaves(args)
+    args = as_array_leaves(args, q0.dtype)
     mask = _batched_mask(args, args_axes)
     batched_args, shared_args = eqx.partition(args, mask)
 

@@ -629,10 +629,10 @@ def member_failures(ts, y0, saved, stats, record, steps_per_interval, max_steps)
     else:
         h = None
     saved = jax.lax.stop_gradient(saved)
-    column = jnp.arange(intervals)[:, None]  # (T-1, 1)
+    column = jnp.arange(intervals, dtype=record.reached.dtype)[:, None]  # (T-1, 1)
     finite = jnp.all(jnp.isfinite(saved[0]), axis=-1) & jnp.all(jnp.isfinite(saved[1]), axis=-1)
     bad = ~finite & (column < record.reached[None, :])  # (T-1, B)
-    first = jnp.argmax(bad, axis=0)
+    first = jnp.argmax(bad, axis=0).astype(record.reached.dtype)
     late = (record.code == failures.NONE) & jnp.any(bad, axis=0)
     before = jnp.maximum(first - 1, 0)
 

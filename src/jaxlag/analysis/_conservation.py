@@ -148,7 +148,7 @@ def _state(q, qd, t, args):
     q = jnp.asarray(q)
     if not jnp.issubdtype(q.dtype, jnp.floating):
         q = q.astype(jnp.result_type(float))
-    return q, jnp.asarray(qd, q.dtype), as_time(t, q), as_array_leaves(args)
+    return q, jnp.asarray(qd, q.dtype), as_time(t, q), as_array_leaves(args, q.dtype)
 
 
 def _generator(generator, q, t, args):

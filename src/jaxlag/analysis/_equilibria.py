@@ -256,7 +256,7 @@ def equilibrium(
     """
     q, qd = as_float_state(q, jnp.zeros_like(jnp.asarray(q)) if qd is None else qd)
     qd = qd.astype(q.dtype)
-    args = as_array_leaves(args)  # new parameter values must not recompile
+    args = as_array_leaves(args, q.dtype)  # new parameter values must not recompile
     system.check(q, qd, t, args)
     n = q.shape[0]
     fixed = _indices(fixed, n, "fixed")

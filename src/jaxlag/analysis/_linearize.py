@@ -229,7 +229,7 @@ def linearize(
     """
     q, qd = as_float_state(q, jnp.zeros_like(jnp.asarray(q)) if qd is None else qd)
     qd = qd.astype(q.dtype)
-    args = as_array_leaves(args)  # new parameter values must not recompile
+    args = as_array_leaves(args, q.dtype)  # new parameter values must not recompile
     system.check(q, qd, t, args)
     t = jnp.asarray(t, q.dtype)
     lin, rank_deficient = _linearize(system, q, qd, t, args, inputs)
@@ -314,7 +314,7 @@ def normal_modes(
     if not jnp.issubdtype(q.dtype, jnp.floating):
         q = q.astype(jnp.result_type(float))
     qd = jnp.zeros_like(q)
-    args = as_array_leaves(args)  # new parameter values must not recompile
+    args = as_array_leaves(args, q.dtype)  # new parameter values must not recompile
     system.check(q, qd, t, args)
     if system.velocity_constraints is not None:
         raise ValueError(
