@@ -200,8 +200,8 @@ def as_array_leaves(tree, dtype=None):
         if isinstance(x, (float, complex, np.ndarray, np.floating)):
             return as_jax_array(x, np.result_type(x))  # converted on the host, no compilation
         if isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.inexact) and jax.typeof(x).weak_type:
-            weak_float = dtype is not None and jnp.issubdtype(x.dtype, jnp.floating)
-            return jax.lax.convert_element_type(x, dtype if weak_float else x.dtype)
+            target = dtype if dtype is not None and jnp.issubdtype(x.dtype, jnp.floating) else x.dtype
+            return jax.lax.convert_element_type(x, target)
         return x
 
     return jax.tree.map(convert, tree)
