@@ -13,7 +13,9 @@ from . import (
     contact as contact,
     coordinates as coordinates,
     experimental as experimental,
+    inputs as inputs,
     loads as loads,
+    plot as plot,
     rotations as rotations,
     systems as systems,
 )

@@ -42,6 +42,7 @@ from ._stabilization import (
 )
 from ._solver.step_once import StepOnce
 from ._solver.validation import check_solver_controller
+from ._inputs import controller_for_args
 from ._system import System
 from ._trajectory import Trajectory
 
@@ -454,6 +455,8 @@ def simulate(
     - ``ts``: increasing save times; the integration runs from ``ts[0]`` to ``ts[-1]``.
       Alternatively give ``t0``, ``t1`` and a ``diffrax.SaveAt``.
     - ``args``: parameters (any pytree) passed to every user function that declares ``args``.
+      An adaptive step-size controller steps onto the breakpoints of the time tables of
+      :mod:`jaxlag.inputs` in ``args`` (see :func:`jaxlag.inputs.with_breakpoints`).
     - ``checks``: a :class:`~jaxlag.Checks` of the input checks (default ``jl.Checks()``: all
       on). ``initial_state``: raise if ``(q0, qd0)`` is non-finite, has a singular mass matrix,
       redundant constraints, or is off the constraint manifold by more than
@@ -537,6 +540,8 @@ def simulate(
         tol = default_solver_tolerance(q0.dtype)
         stepsize_controller = diffrax.PIDController(rtol=tol, atol=tol)
     check_solver_controller(solver, stepsize_controller, default_controller=default_controller)
+    # Time tables in args: step onto their breakpoints (jaxlag.inputs).
+    stepsize_controller = controller_for_args(stepsize_controller, args, t0.dtype)
     constraint_tolerance = checks.tolerance(q0.dtype)
     if adjoint is None:
         adjoint = ForwardSensitivities()
