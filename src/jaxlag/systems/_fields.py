@@ -46,7 +46,7 @@ def charged_particle() -> System:
     r"""A particle of mass ``m`` and charge ``charge`` in uniform fields ``E`` and ``B`` (3-vectors).
 
     ``q = (x, y, z)``; velocity-dependent (Lorentz) potential with the symmetric gauge
-    ``A = ½ B × x``, ``ϕ = −E·x`` (seed 001):
+    ``A = ½ B × x``, ``ϕ = −E·x``:
 
         L = ½ m |ẋ|² + e ẋ·A(x) − e ϕ(x),     m ẍ = e (E + ẋ × B).
 

@@ -42,7 +42,7 @@ def rolling_disk() -> System:
 @model({"m": 1.0, "R": 1.0, "g": 9.81, "alpha": 0.5})
 def disk_on_incline() -> System:
     r"""A uniform disk (mass ``m``, radius ``R``) rolling without slipping down an incline of angle
-    ``alpha`` (seed 001).
+    ``alpha``.
 
     ``q = (s, θ)``: distance travelled down the slope and rotation angle; the disk is a
     :class:`~jaxlag.coordinates.RigidBody2D` with ``I = ½ m R²``:

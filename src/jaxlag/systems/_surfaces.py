@@ -57,7 +57,7 @@ def bead_on_hoop(form: str = "generalized") -> System:
 @model({"m": 1.0, "c": 1.0, "g": 9.81, "omega": 1.0})
 def bead_on_rotating_parabola(form: str = "generalized") -> System:
     r"""A bead of mass ``m`` on a wire ``z = c r²`` spinning about the vertical at the rate ``omega``
-    (seed 001, Thornton & Marion §7).
+    (Thornton & Marion §7).
 
     - ``form="generalized"``: ``q = (r,)``, the signed distance from the axis; position
       ``(r cos ωt, r sin ωt, c r²)``; ``L = ½ m (ṙ² (1 + 4c²r²) + ω² r²) − m g c r²``:
@@ -99,7 +99,7 @@ def bead_on_rotating_parabola(form: str = "generalized") -> System:
 @model({"m": 1.0, "g": 9.81, "alpha": 0.5})
 def particle_on_cone(form: str = "generalized") -> System:
     r"""A particle of mass ``m`` sliding on the inside of a cone with its apex down at the origin,
-    axis vertical, half-angle ``alpha`` (seed 002, Taylor 7.38).
+    axis vertical, half-angle ``alpha`` (Taylor, Classical Mechanics, 7.38).
 
     - ``form="generalized"``: ``q = (r, φ)``, ``r`` the distance from the apex along the
       surface, φ the azimuth: ``L = ½ m (ṙ² + r² sin²α φ̇²) − m g r cos α``. φ is cyclic:
@@ -143,7 +143,7 @@ def particle_on_cone(form: str = "generalized") -> System:
 
 @model({"m": 1.0, "R": 1.0, "g": 9.81})
 def particle_on_sphere(form: str = "spherical", unilateral: bool = False) -> System:
-    r"""A particle of mass ``m`` on a sphere of radius ``R`` centred at the origin (seed 000).
+    r"""A particle of mass ``m`` on a sphere of radius ``R`` centred at the origin.
 
     - ``form="spherical"``: ``q = (r, θ, φ)``, θ from the top (+z), with ``f = r − R``;
       ``L = ½ m (ṙ² + r²θ̇² + r² sin²θ φ̇²) − m g r cos θ``.
@@ -182,8 +182,7 @@ def particle_on_sphere(form: str = "spherical", unilateral: bool = False) -> Sys
 
 @model({"m": 1.0, "a": 1.0})
 def spiral(form: str = "polar") -> System:
-    r"""A free particle (no gravity) of mass ``m`` on the Archimedean spiral ``r = a θ`` in a plane
-    (seed 000).
+    r"""A free particle (no gravity) of mass ``m`` on the Archimedean spiral ``r = a θ`` in a plane.
 
     - ``form="polar"``: ``q = (r, θ)``, ``L = ½ m (ṙ² + r² θ̇²)``, ``f = r − a θ``; then
       ``θ̈ = −θ θ̇²/(1 + θ²)`` and ``λ = −m a θ̇² (2θ + θ³)/(1 + θ²)``.
