@@ -45,6 +45,8 @@ from ._fit import (
     Bounded as Bounded,
     Experiment as Experiment,
     FitResult as FitResult,
+    FitWarning as FitWarning,
+    MultiStart as MultiStart,
     Positive as Positive,
     Shooting as Shooting,
     fit as fit,

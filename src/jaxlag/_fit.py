@@ -22,7 +22,15 @@ Two kinds of optimizer (``optimizer=``):
 
 Standard errors come from the Gauss–Newton approximation at the optimum: with the Jacobian
 ``J = ∂r/∂θ`` in physical parameters, ``Cov = σ̂² (JᵀJ)⁻¹``, where ``σ̂² = |r|²/(N − p)`` is
-estimated from the residuals unless ``noise_std`` is given (then ``Cov = (JᵀJ)⁻¹``).
+estimated from the residuals unless ``noise_std`` is given (then ``Cov = (JᵀJ)⁻¹``). The
+inverse is rank-revealing (an SVD of ``J`` with its columns scaled to unit norm, singular
+values below ``√ε · s_max`` dropped): a parameter along a direction the data cannot determine,
+or one that does not affect the residuals, gets an infinite standard error, its name in
+``FitResult.undetermined`` / ``FitResult.insensitive``, and a :class:`FitWarning` that says
+which combination is determined (``only g/l is determined by the data``). The fit also warns
+when a parameter ends at a :class:`Bounded` bound, and, with ``noise_std`` given, when the
+reduced χ² exceeds ``1 + 5 √(2/(N − p))`` (five standard deviations of the χ² distribution
+above its mean: a local minimum, or a model that does not describe the data).
 
 Chaotic or long trajectories: ``shooting=Shooting(segments=S)`` splits each experiment into
 ``S`` segments, each starting from its own free state, and adds continuity residuals
@@ -32,6 +40,7 @@ Chaotic or long trajectories: ``shooting=Shooting(segments=S)`` splits each expe
 from __future__ import annotations
 
 import operator
+import warnings
 from collections.abc import Callable, Sequence
 from typing import Any, Literal, cast, overload
 
@@ -43,7 +52,7 @@ import numpy as np
 import optax
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from . import _compile as compilation
 from ._custom_types import Coordinates, RealScalarLike, SaveTimes, Scalar, Velocities
@@ -181,21 +190,57 @@ def _stack(experiments) -> Any:
     experiments = list(experiments)
     if not experiments:
         raise ValueError("fit needs at least one Experiment.")
+    for index, e in enumerate(experiments):
+        if jnp.shape(e.q0) != jnp.shape(e.qd0) or jnp.ndim(e.q0) != 1:
+            raise ValueError(
+                f"Experiment {index}: q0 and qd0 must be 1-D of equal length (one entry per "
+                f"coordinate); got q0 of shape {jnp.shape(e.q0)} and qd0 of shape {jnp.shape(e.qd0)}."
+            )
+        if jnp.shape(e.q0) != jnp.shape(experiments[0].q0):
+            raise ValueError(
+                f"Experiment {index}: q0 has {jnp.shape(e.q0)[0]} entries, but experiment 0's q0 "
+                f"has {jnp.shape(experiments[0].q0)[0]} (one per coordinate of the system)."
+            )
     shapes = {(jnp.shape(e.ts), jnp.shape(e.observations), jnp.shape(e.q0)) for e in experiments}
     if len(shapes) != 1:
         raise ValueError(
             "All experiments must have the same shapes (ts, observations, q0) to be batched with "
             f"vmap; got {sorted(shapes)}. Pad shorter ones with NaN observations."
         )
-    for e in experiments:
+    for index, e in enumerate(experiments):
         ts = np.asarray(e.ts)
+        bad_ts = np.flatnonzero(~np.isfinite(ts))
+        if bad_ts.size:
+            raise ValueError(
+                f"Experiment {index}: save time ts[{bad_ts[0]}] = {ts[bad_ts[0]]} is not finite; "
+                "save times must be finite numbers."
+            )
         if ts.ndim != 1 or not np.all(np.diff(ts) > 0):
             raise ValueError("Each experiment's ts must be a strictly increasing 1-D array.")
+        if not is_concrete((e.ts, e.observations, e.q0, e.qd0)):
+            continue
         if np.ndim(e.observations) != 2 or np.shape(e.observations)[0] != ts.shape[0]:
             raise ValueError(
                 f"observations must have shape (T, k) with T = len(ts) = {ts.shape[0]}; got "
                 f"{np.shape(e.observations)}."
             )
+        observations = np.asarray(e.observations)
+        infinite = np.argwhere(np.isinf(observations))
+        if infinite.size:
+            i, k = infinite[0]
+            raise ValueError(
+                f"Experiment {index}: observations[{i}, {k}] (time index {i}, t = {ts[i]}) is "
+                f"{observations[i, k]}. Infinite observations are not data; mark missing values "
+                "with NaN (they are masked out)."
+            )
+        for name, value in (("q0", e.q0), ("qd0", e.qd0)):
+            value = np.atleast_1d(np.asarray(value))
+            bad = np.flatnonzero(~np.isfinite(value))
+            if bad.size:
+                raise ValueError(
+                    f"Experiment {index}: {name}[{bad[0]}] = {value[bad[0]]} is not finite; the "
+                    "initial state (or its starting guess) must be finite."
+                )
     # Stacked on the host (NumPy, JAX's default float type): the fit's bookkeeping compiles no
     # small device programs; the arrays go to the device as inputs of the compiled programs.
     dtype = jax.dtypes.canonicalize_dtype(float)
@@ -210,6 +255,26 @@ class FitResult(eqx.Module):
     order of ``params``. ``initial_states``: fitted ``(q0, qd0)`` per experiment when estimated.
     ``loss_history``: ``ℓ`` after each optimizer step (index 0 is the starting point).
     ``segment_states``: ``(q, qd)`` of shape (E, S, n), the state each shooting segment starts from.
+
+    What the fit can vouch for (all computed at the optimum, see :func:`fit`):
+
+    - ``standard_errors``: ``inf`` for a parameter the data cannot determine (it has a
+      component along a flat direction of the residuals) or that does not affect them.
+      ``covariance``: such a parameter has ``inf`` on the diagonal and NaN elsewhere in its
+      row and column. ``correlation``: ``Cov_ij / √(Cov_ii Cov_jj)``, NaN rows and columns
+      for those parameters.
+    - ``undetermined``, ``insensitive``: the names of those parameters (``"k[1]"`` for an
+      entry of an array parameter; estimated initial states as ``"q0[0] of experiment 0"``).
+    - ``at_bound``: parameters that end within ``1e-6 (upper − lower)`` of a :class:`Bounded`
+      transform's bound.
+    - ``residual_std``: the standard deviation of the residuals, ``√(Σ r²/(N − p))`` in the
+      units of the observations. ``reduced_chi2``: ``Σ (r/σ)²/(N − p)`` when ``noise_std`` is
+      given (else None); about ``1 ± √(2/(N − p))`` for a good fit.
+    - ``warnings``: the texts of the :class:`FitWarning` s the fit issued.
+    - ``initial_state_errors``: standard errors of the estimated initial states (same
+      structure as ``initial_states``), None when they are not estimated.
+    - ``converged``: the optimizer's stopping criterion was met; it says nothing about the
+      items above (a fit can converge to a local minimum, or to one point of a flat valley).
     """
 
     params: dict[str, Array]
@@ -221,6 +286,43 @@ class FitResult(eqx.Module):
     num_steps: int
     converged: bool
     segment_states: tuple[SegmentStates, SegmentStates] | None = None
+    correlation: Float[Array, "p p"] | None = None
+    reduced_chi2: float | None = None
+    undetermined: tuple[str, ...] = ()
+    insensitive: tuple[str, ...] = ()
+    at_bound: tuple[str, ...] = ()
+    warnings: tuple[str, ...] = ()
+    initial_state_errors: tuple[Float[Array, "experiments n"], Float[Array, "experiments n"]] | None = None
+    start_losses: Float[np.ndarray, " starts"] | None = None
+    start_params: dict[str, Array] | None = None
+
+
+class MultiStart(eqx.Module):
+    """Several starting points for :func:`fit`: pass ``params=jl.MultiStart({"g": [5.0, 10.0,
+    20.0], "l": [0.5, 1.0, 2.0]})``. Every leaf has a leading axis of length K (the number of
+    starts; a vector parameter of length n is given as (K, n)). The fits run one after the other
+    (they share the compiled programs: only the first compiles); the result is the fit with the
+    lowest final loss, with every start's final loss and parameters in
+    :attr:`FitResult.start_losses` / :attr:`FitResult.start_params`. A start whose fit fails
+    (diverges or its simulation fails) gets loss ``inf``; only the best fit's warnings are issued.
+    """
+
+    starts: dict[str, Float[ArrayLike, " starts *shape"]]
+
+    def __check_init__(self):
+        sizes = {k: np.shape(v)[0] if np.ndim(v) else None for k, v in self.starts.items()}
+        if not sizes or None in sizes.values() or len(set(sizes.values())) != 1:
+            raise ValueError(
+                "MultiStart needs every parameter with the same leading axis (one entry per start); "
+                f"got leading sizes {sizes}."
+            )
+
+
+class FitWarning(UserWarning):
+    """What :func:`fit` warns about: parameters the data cannot determine or that do not affect
+    the residuals, a parameter ending at a bound, a fit far worse than the noise. Filter it with
+    ``warnings.simplefilter("ignore", jl.FitWarning)``; the same texts are in
+    :attr:`FitResult.warnings`."""
 
 
 # ----------------------------------------------------------------------------- model
@@ -266,6 +368,8 @@ class _Model(eqx.Module):
     projection: Any = None
     baumgarte: Any = None
     periodic: tuple = eqx.field(static=True, default=())
+    # Partial estimation: the indices of the estimated entries of (q0, qd0); None = all.
+    initial_mask: tuple[tuple[int, ...], tuple[int, ...]] | None = eqx.field(static=True, default=None)
 
     def simulate(self, q0, qd0, ts, args, **kwargs):
         """:func:`~jaxlag.simulate` of the system with the fit's simulation options."""
@@ -295,6 +399,12 @@ class _Model(eqx.Module):
 
     def split(self, states):
         """Free part of the segment states, and the fixed part."""
+        if self.estimate_initial_state and self.initial_mask is not None:
+            qi, qdi = (list(i) for i in self.initial_mask)
+            free = {"initial": (states[0][:, 0][:, qi], states[1][:, 0][:, qdi])}
+            if self.segments > 1:
+                free["later"] = (states[0][:, 1:], states[1][:, 1:])
+            return free, (states[0][:, :1], states[1][:, :1])
         if self.estimate_initial_state:
             return {"states": states}, None
         if self.segments > 1:
@@ -302,6 +412,18 @@ class _Model(eqx.Module):
         return {}, states
 
     def states(self, free, fixed_states):
+        if self.estimate_initial_state and self.initial_mask is not None:
+            qi, qdi = (list(i) for i in self.initial_mask)
+            first = (
+                fixed_states[0].at[:, 0, qi].set(free["initial"][0]),
+                fixed_states[1].at[:, 0, qdi].set(free["initial"][1]),
+            )
+            if self.segments == 1:
+                return first
+            return (
+                jnp.concatenate([first[0], free["later"][0]], axis=1),
+                jnp.concatenate([first[1], free["later"][1]], axis=1),
+            )
         if self.estimate_initial_state:
             return free["states"]
         if self.segments > 1:
@@ -531,7 +653,7 @@ def _segment_grid(ts, segments):
 
 def fit(
     system: System,
-    params: dict[str, ArrayLike],
+    params: dict[str, ArrayLike] | MultiStart,
     experiments: Experiment | Sequence[Experiment],
     *,
     observe: Callable | None = None,
@@ -542,7 +664,7 @@ def fit(
     ),
     max_steps: int = 100,
     noise_std: float | None = None,
-    estimate_initial_state: bool = False,
+    estimate_initial_state: bool | tuple[Bool[ArrayLike, " n"], Bool[ArrayLike, " n"]] = False,
     shooting: Shooting = Shooting(),
     solver: diffrax.AbstractSolver = diffrax.Tsit5(),
     stepsize_controller: diffrax.AbstractStepSizeController = diffrax.PIDController(rtol=1e-10, atol=1e-10),
@@ -557,7 +679,8 @@ def fit(
     **Arguments:**
 
     - ``system``: the :class:`~jaxlag.System` (constraints, dissipation and forces included).
-    - ``params``: dict of free parameters with their starting values.
+    - ``params``: dict of free parameters with their starting values, or a :class:`MultiStart`
+      of several starting points (the best fit is returned).
     - ``experiments``: an :class:`Experiment` or a list of them (equal shapes; batched by vmap).
     - ``observe``: ``observe(q, qd, [t], [args]) -> (k,)``, what was measured (default: ``q``).
       It matters: for a pendulum ``θ(t)`` depends only on ``g/l``, while the bob's Cartesian
@@ -573,7 +696,11 @@ def fit(
       state.
     - ``max_steps``: the most optimizer steps.
     - ``noise_std``: known observation noise σ; if None it is estimated from the residuals.
-    - ``estimate_initial_state``: also fit each experiment's ``(q0, qd0)``.
+    - ``estimate_initial_state``: also fit each experiment's ``(q0, qd0)`` (``True``), or only
+      some entries: a pair of boolean masks ``(q_mask, qd_mask)`` of shape (n,) each, True =
+      estimated (the same entries in every experiment); the others stay at the experiment's
+      ``q0``/``qd0``, which are then known values. E.g. ``(jnp.array([True]),
+      jnp.array([False]))``: θ0 free, θ̇0 known.
     - ``shooting``: a :class:`Shooting` (segments, continuity weight, starting guesses of the
       segment states, periodic coordinates); the default ``Shooting()`` is single shooting.
     - ``solver``, ``stepsize_controller``, ``dt0``, ``projection``, ``baumgarte``: passed to
@@ -583,6 +710,15 @@ def fit(
 
     Returns a :class:`FitResult`.
     """
+    if isinstance(params, MultiStart):
+        options = dict(
+            observe=observe, args=args, transforms=transforms, optimizer=optimizer,
+            max_steps=max_steps, noise_std=noise_std, estimate_initial_state=estimate_initial_state,
+            shooting=shooting, solver=solver, stepsize_controller=stepsize_controller, dt0=dt0,
+            max_solver_steps=max_solver_steps, projection=projection, baumgarte=baumgarte,
+            progress=progress,
+        )  # fmt: skip
+        return _multi_start(system, params, experiments, options)
     batch = _stack(experiments)
     transforms = dict(transforms or {})
     unknown = set(transforms) - set(params)
@@ -597,6 +733,7 @@ def fit(
     real = jax.dtypes.canonicalize_dtype(float)  # on the host: no eager device conversions
     fixed = {k: np.asarray(v, real) if isinstance(v, (int, float)) else v for k, v in (args or {}).items()}
     params = {k: np.asarray(v, real) for k, v in params.items()}
+    _check_starts(params, transforms)
 
     # Shapes of the observation function against the data.
     q_probe = batch.q0[0]
@@ -611,6 +748,7 @@ def fit(
     if not np.any(np.isfinite(np.asarray(batch.observations))):
         raise ValueError("All observations are NaN: nothing to fit.")
 
+    initial_mask = _initial_mask(estimate_initial_state, batch.q0.shape[-1])
     spec = _ParamSpec(tuple(params), tuple(jnp.shape(v) for v in params.values()))
     model = _Model(
         system,
@@ -618,7 +756,8 @@ def fit(
         transforms,
         spec,
         segments=int(shooting.segments),
-        estimate_initial_state=bool(estimate_initial_state),
+        estimate_initial_state=initial_mask is not None or estimate_initial_state is True,
+        initial_mask=initial_mask,
         solver=solver,
         stepsize_controller=stepsize_controller,
         max_steps=int(max_solver_steps),
@@ -699,27 +838,166 @@ def fit(
     else:
         r, jac_free, _ = _residuals_and_jacobian(model, free, data, fixed_states)
     observed = int(np.sum(np.isfinite(np.asarray(batch.observations))))
-    noise = None if noise_std is None else np.asarray(float(noise_std), batch.q0.dtype)
-    fitted, standard_errors, covariance, residual_std, initial, states = _summary(
-        model,
-        free,
-        fixed_states,
-        r,
-        jac_free,
-        np.asarray(max(observed - flat.size, 1), batch.q0.dtype),
-        noise,
-    )
+    fitted, jac, x, states = jax.device_get(_summary(model, free, fixed_states, jac_free))
+    r, jac, x = np.asarray(r), np.asarray(jac), np.asarray(x)
+    dof = max(observed - flat.size, 1)
+    chi2 = float(np.sum(r**2))
+    if noise_std is None:
+        sigma2 = chi2 / dof
+        residual_std = np.sqrt(sigma2)
+        reduced_chi2 = None
+    else:
+        sigma2 = 1.0
+        residual_std = float(noise_std) * np.sqrt(chi2 / dof)
+        reduced_chi2 = chi2 / dof
+    names = _column_names(spec, model, num_experiments, batch.q0.shape[-1])
+    covariance, errors, insensitive, null = _rank_revealing(jac, x, sigma2, names)
+    p = len(spec.ravel(fitted))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        correlation = covariance / np.sqrt(np.outer(np.diag(covariance), np.diag(covariance)))
+    correlation[~np.isfinite(errors), :] = np.nan
+    correlation[:, ~np.isfinite(errors)] = np.nan
+    messages = [f"{names[j]} does not affect the residuals" for j in insensitive]
+    messages += _describe_null(null, x, names)
+    undetermined = tuple(names[j] for j in np.flatnonzero(~np.isfinite(errors)) if j not in insensitive)
+    at_bound = []
+    for name, transform in transforms.items():
+        if isinstance(transform, Bounded):
+            value = np.ravel(np.asarray(fitted[name]))
+            width = transform.upper - transform.lower
+            near = np.minimum(value - transform.lower, transform.upper - value) <= 1e-6 * width
+            for i in np.flatnonzero(near):
+                where = name if np.ndim(fitted[name]) == 0 else f"{name}[{i}]"
+                at_bound.append(where)
+                messages.append(
+                    f"{where} = {value[i]:.6g} ends at a bound of Bounded({transform.lower}, "
+                    f"{transform.upper}) (within 1e-6 of the interval's width): the data pull it "
+                    "outside the interval; widen the bounds or check the model"
+                )
+    if noise_std is not None and reduced_chi2 is not None and reduced_chi2 > 1 + 5 * np.sqrt(2 / dof):
+        messages.append(
+            f"the fit ends with reduced χ² = {reduced_chi2:.3g} (residual std {residual_std:.3g} for "
+            f"noise_std {float(noise_std):.3g}), beyond 1 + 5·√(2/{dof}) = "
+            f"{1 + 5 * np.sqrt(2 / dof):.3g}: the fit ends at a local minimum or the model does not "
+            "describe the data; try another start"
+        )
+    for message in messages:
+        warnings.warn(f"jl.fit: {message}.", FitWarning, stacklevel=2)
+    standard_errors = spec.unravel(jnp.asarray(errors[:p]))
+    initial_state_errors = None
+    if model.estimate_initial_state and model.initial_mask is not None:
+        # Known entries: standard error 0; estimated ones in ravel order (q entries, then qd).
+        shape = np.shape(states[0][:, 0])
+        q_se, qd_se, start = np.zeros(shape), np.zeros(shape), p
+        for target, indices in zip((q_se, qd_se), model.initial_mask):
+            size = shape[0] * len(indices)
+            target[:, list(indices)] = errors[start : start + size].reshape(shape[0], len(indices))
+            start += size
+        initial_state_errors = (jnp.asarray(q_se), jnp.asarray(qd_se))
+    elif model.estimate_initial_state:
+        state_errors = errors[p:].reshape((2, *np.shape(states[0])))
+        initial_state_errors = (jnp.asarray(state_errors[0][:, 0]), jnp.asarray(state_errors[1][:, 0]))
+    initial = (states[0][:, 0], states[1][:, 0])
     return FitResult(
         fitted,
         standard_errors,
-        covariance,
-        residual_std,
+        jnp.asarray(covariance[:p, :p]),
+        jnp.asarray(residual_std),
         np.asarray(history),
         initial,
         steps,
         converged,
         states,
+        correlation=jnp.asarray(correlation[:p, :p]),
+        reduced_chi2=reduced_chi2,
+        undetermined=undetermined,
+        insensitive=tuple(names[j] for j in insensitive),
+        at_bound=tuple(at_bound),
+        warnings=tuple(messages),
+        initial_state_errors=initial_state_errors,
     )
+
+
+def _multi_start(system, starts: MultiStart, experiments, options) -> FitResult:
+    """:func:`fit` from each start of ``starts`` in turn; the best result, with all of them."""
+    count = next(iter(np.shape(v)[0] for v in starts.starts.values()))
+    results, losses, error = [], [], None
+    for k in range(count):
+        start = {name: np.asarray(value)[k] for name, value in starts.starts.items()}
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FitWarning)
+            try:
+                result = fit(system, start, experiments, **options)
+            except (FloatingPointError, failures.SimulationError) as caught:
+                result, error = None, caught
+        results.append(result)
+        losses.append(np.inf if result is None else float(result.loss_history[-1]))
+    best = int(np.argmin(losses))
+    result = results[best]
+    if result is None:
+        raise ValueError(f"MultiStart: every one of the {count} fits failed; the last: {error}") from error
+    for message in result.warnings:
+        warnings.warn(f"jl.fit: {message}.", FitWarning, stacklevel=3)
+    names = tuple(result.params)
+    start_params = {
+        name: jnp.stack(
+            [
+                jnp.asarray(r.params[name]) if r is not None else jnp.full_like(result.params[name], jnp.nan)
+                for r in results
+            ]
+        )
+        for name in names
+    }
+    return eqx.tree_at(
+        lambda r: (r.start_losses, r.start_params),
+        result,
+        (np.asarray(losses), start_params),
+        is_leaf=lambda x: x is None,
+    )
+
+
+def _initial_mask(estimate, n):
+    """The indices ``(q, qd)`` of the estimated initial-state entries of a mask pair, None for a
+    plain ``True``/``False``; a ``ValueError`` naming what is wrong with a malformed mask."""
+    if isinstance(estimate, (bool, np.bool_)):
+        return None
+    if not (isinstance(estimate, (tuple, list)) and len(estimate) == 2):
+        raise ValueError(
+            "estimate_initial_state must be True, False or a pair of boolean masks (q_mask, "
+            f"qd_mask) of shape ({n},) each; got {estimate!r}."
+        )
+    indices = []
+    for name, mask in zip(("q_mask", "qd_mask"), estimate):
+        mask = np.asarray(mask)
+        if mask.dtype != np.bool_ or mask.shape != (n,):
+            raise ValueError(
+                f"estimate_initial_state: {name} must be a boolean array of shape ({n},) (one entry "
+                f"per coordinate, True = estimated); got dtype {mask.dtype} and shape {mask.shape}."
+            )
+        indices.append(tuple(int(i) for i in np.flatnonzero(mask)))
+    return (indices[0], indices[1])
+
+
+def _check_starts(params, transforms) -> None:
+    """A ``ValueError`` naming a starting value that is not finite or lies outside its
+    transform's open domain (``Positive``: > 0; ``Bounded(a, b)``: strictly inside (a, b))."""
+    for name, value in params.items():
+        flat = np.ravel(value)
+        transform = transforms.get(name, Identity())
+        if isinstance(transform, Positive):
+            inside, domain = flat > 0, "(0, inf) of jl.Positive()"
+        elif isinstance(transform, Bounded):
+            inside = (flat > transform.lower) & (flat < transform.upper)
+            domain = f"the open interval ({transform.lower}, {transform.upper}) of jl.Bounded"
+        else:
+            inside, domain = np.isfinite(flat), "finite numbers"
+        bad = np.flatnonzero(~(inside & np.isfinite(flat)))
+        if bad.size:
+            where = name if np.ndim(value) == 0 else f"{name}[{bad[0]}]"
+            raise ValueError(
+                f"The starting value {where} = {flat[bad[0]]} is outside the domain {domain}; "
+                "start strictly inside it."
+            )
 
 
 def _check_optimizer(optimizer) -> bool:
@@ -762,26 +1040,136 @@ def _unconstrained(model, params):
 
 
 @compilation.filter_jit
-def _summary(model, free, fixed_states, r, jac_free, dof, noise):
-    """At the optimum, in one program: the physical parameters, their standard errors and
-    covariance ``σ² (JᵀJ)⁺`` (``J`` in physical parameters, ``σ² = Σr²/dof`` unless the noise
-    σ is known), the residual standard deviation and the segment states."""
+def _summary(model, free, fixed_states, jac_free):
+    """At the optimum, in one program: the physical parameters, the Jacobian of the weighted
+    residuals with respect to the physical parameters (then the free segment states), their
+    values in that order, and the segment states."""
     fitted = model.physical(free["params"])
     physical = model.spec.ravel(fitted)
     free_states = ravel_pytree({k: v for k, v in free.items() if k != "params"})[0]
     x = jnp.concatenate([physical, free_states.astype(physical.dtype)])  # ravel_pytree({}): float32
     jac = jac_free @ _free_variables_jacobian(model, x, free)
-    if noise is None:
-        sigma2 = jnp.sum(r**2) / dof
-        residual_std = jnp.sqrt(sigma2)
-    else:
-        sigma2, residual_std = jnp.ones((), r.dtype), noise
-    covariance = sigma2 * jnp.linalg.pinv(jac.T @ jac)
-    p = model.spec.ravel(fitted).shape[0]
-    standard_errors = model.spec.unravel(jnp.sqrt(jnp.diag(covariance))[:p])
     states = model.states(free, fixed_states)
-    initial = (states[0][:, 0], states[1][:, 0])
-    return fitted, standard_errors, covariance[:p, :p], residual_std, initial, states
+    return fitted, jac, x, states
+
+
+def _column_names(spec, model, num_experiments, n) -> list[str]:
+    names = []
+    for key, shape in zip(spec.keys, spec.shapes):
+        if shape == ():
+            names.append(key)
+        else:
+            names.extend(f"{key}[{', '.join(map(str, i))}]" for i in np.ndindex(*shape))
+    if model.estimate_initial_state and model.initial_mask is not None:
+        for kind, indices in zip(("q", "qd"), model.initial_mask):
+            for e in range(num_experiments):
+                names.extend(f"{kind}0[{i}] of experiment {e}" for i in indices)
+    if model.estimate_initial_state and model.initial_mask is None:
+        for kind in ("q", "qd"):
+            for e in range(num_experiments):
+                for seg in range(model.segments):
+                    label = f"{kind}0" if seg == 0 else f"{kind} at segment {seg}"
+                    names.extend(f"{label}[{i}] of experiment {e}" for i in range(n))
+    if model.segments > 1 and (not model.estimate_initial_state or model.initial_mask is not None):
+        for kind in ("q", "qd"):
+            for e in range(num_experiments):
+                for seg in range(1, model.segments):
+                    names.extend(f"{kind} at segment {seg}[{i}] of experiment {e}" for i in range(n))
+    return names
+
+
+def _rank_revealing(jac, x, sigma2, names):
+    """The covariance ``σ² (JᵀJ)⁻¹`` restricted to what the data determine, by an SVD.
+
+    A variable whose sensitivity is negligible, ``|J_j| s_j ≤ √ε · max_k |J_k| s_k`` with
+    ``s_j = max(|x_j|, 1)`` (a change of it by ``s_j`` moves the residuals by less than ``√ε``
+    of what such a change of the most sensitive one does), does not affect the residuals; the
+    test catches columns that are rounding noise (a mass that cancels from the motion), which
+    equilibration would otherwise blow up to unit norm. The others are scaled to unit norm
+    (equilibration: the threshold then does not depend on the parameters' units) and
+    decomposed, ``J D⁻¹ = U S Vᵀ``; singular values ``s < √ε · s_max`` span the directions the
+    data cannot determine. Not ``max(N, p) ε s_max``: the Jacobian comes from forward
+    sensitivities integrated at the solver's tolerance (≈1e-10), far less accurate than ``ε``,
+    so a structural degeneracy (only ``g/l`` enters) can show up well above rounding level;
+    and a combination determined ``1/√ε ≈ 7e7`` times worse than the best one is no estimate.
+    Every variable with a component (``> √ε``) in those directions gets an
+    infinite standard error. Returns ``(covariance, standard errors, insensitive indices,
+    null vectors in physical units)``.
+    """
+    eps = np.finfo(jac.dtype).eps
+    norms = np.linalg.norm(jac, axis=0)
+    relative = norms * np.maximum(np.abs(x), 1.0)  # change of r for a change of x by max(|x|, 1)
+    scale = relative.max() if relative.size and relative.max() > 0 else 1.0
+    insensitive = np.flatnonzero(~(relative > np.sqrt(eps) * scale))
+    active = np.flatnonzero(relative > np.sqrt(eps) * scale)
+    p = jac.shape[1]
+    covariance = np.full((p, p), np.nan)
+    errors = np.full(p, np.inf)
+    null = np.zeros((0, p))
+    if active.size:
+        d = norms[active]
+        _, sv, vt = np.linalg.svd(jac[:, active] / d, full_matrices=True)
+        sv = np.concatenate([sv, np.zeros(active.size - sv.size)])
+        keep = sv >= np.sqrt(eps) * sv[0]
+        vk = vt[keep].T / d[:, None]  # back to physical units
+        sub = sigma2 * (vk / sv[keep] ** 2) @ vk.T
+        vn = vt[~keep]  # equilibrated null directions
+        undetermined = np.zeros(active.size, bool)
+        if vn.size:
+            undetermined = np.linalg.norm(vn, axis=0) > np.sqrt(eps)
+            null_phys = np.zeros((vn.shape[0], p))
+            null_phys[:, active] = vn / d
+            null = null_phys
+        covariance[np.ix_(active, active)] = sub
+        ok = active[~undetermined]
+        errors[ok] = np.sqrt(np.diag(covariance)[ok])
+        bad = active[undetermined]
+        covariance[bad, :] = np.nan
+        covariance[:, bad] = np.nan
+    covariance[insensitive, :] = np.nan
+    covariance[:, insensitive] = np.nan
+    for j in np.flatnonzero(~np.isfinite(errors)):
+        covariance[j, j] = np.inf
+    return covariance, errors, insensitive, null
+
+
+def _describe_null(null, x, names) -> list[str]:
+    """Words for the directions the data cannot determine (rows of ``null``, physical units)."""
+    if null.shape[0] == 0:
+        return []
+    tol = 1e-6
+    if null.shape[0] > 1:
+        involved = np.flatnonzero(np.linalg.norm(null, axis=0) > tol * np.abs(null).max())
+        return [
+            f"the data cannot determine {null.shape[0]} combinations of "
+            + ", ".join(names[j] for j in involved)
+            + ": they can change together without changing the residuals"
+        ]
+    v = null[0]
+    involved = np.flatnonzero(np.abs(v) > tol * np.abs(v).max())
+    if np.all(x[involved] != 0):
+        u = v[involved] / x[involved]  # d log x along the flat direction
+        u = u / u[np.argmax(np.abs(u))]
+        if involved.size == 2 and abs(abs(u[0]) - abs(u[1])) < 1e-3:
+            a, b = (names[j] for j in involved)
+            if u[0] * u[1] > 0:
+                return [
+                    f"only {a}/{b} is determined by the data: {a} and {b} can be scaled together "
+                    "without changing the residuals"
+                ]
+            return [
+                f"only {a}·{b} is determined by the data: {a} can be scaled up and {b} down by "
+                "the same factor without changing the residuals"
+            ]
+        terms = " + ".join(f"{c:.3g}·d log {names[j]}" for c, j in zip(u, involved))
+        return [
+            f"the data cannot determine the direction {terms}: "
+            + ", ".join(names[j] for j in involved)
+            + " can change together along it without changing the residuals"
+        ]
+    w = v[involved] / v[involved][np.argmax(np.abs(v[involved]))]
+    terms = " + ".join(f"{c:.3g}·d{names[j]}" for c, j in zip(w, involved))
+    return [f"the data cannot determine the direction {terms} (it leaves the residuals unchanged)"]
 
 
 def _tick(bar, loss):
@@ -848,6 +1236,11 @@ def least_squares_loss(
         "ts_seg": batch.ts[:, None, :],
         "continuity_weight": 0.0,
     }
+    if is_concrete(batch.observations) and not np.any(np.isfinite(np.asarray(batch.observations))):
+        raise ValueError(
+            "least_squares_loss: no observation is finite (all are NaN or inf): the loss would be "
+            "0, a perfect fit of no data."
+        )
     free = {"params": spec.ravel({k: jnp.asarray(v, float) for k, v in params.items()})}
     r = model.residuals(free, data, (batch.q0[:, None], batch.qd0[:, None]), adjoint)
     return 0.5 * jnp.sum(r**2)
