@@ -63,6 +63,13 @@ def test_double_pendulum_mass_matrix_and_forces(q, qd):
     np.testing.assert_allclose(SYSTEM.energy(q, qd, args=ARGS), 2 * kinetic - lagrangian, atol=1e-11)
 
 
+def quadratic_lagrangian(q, qd, args):
+    return 0.5 * qd @ args["A"] @ qd + (args["B"] @ q) @ qd - 0.5 * q @ q
+
+
+QUADRATIC = jl.System(quadratic_lagrangian)
+
+
 @settings(max_examples=25, deadline=None)
 @given(
     hnp.arrays(np.float64, (3, 3), elements=finite),
@@ -74,15 +81,12 @@ def test_general_quadratic_lagrangian(a, b, q, qd):
     """L = ½ q̇ᵀ A q̇ + (Bq)·q̇ − ½|q|² with A SPD: M = A, F = ∂L/∂q − (∂²L/∂q̇∂q) q̇."""
     spd = a @ a.T + 3 * np.eye(3)
     skew = np.outer(b, b[::-1])
-
-    def lagrangian(q, qd):
-        return 0.5 * qd @ spd @ qd + (skew @ q) @ qd - 0.5 * q @ q
-
-    system = jl.System(lagrangian)
+    # A and B are arrays in args, not constants closed over: one compiled program for all examples.
+    args = {"A": spd, "B": skew}
     # ∂L/∂q = Bᵀ q̇ − q, ∂²L/∂q̇∂q = B, so F = Bᵀq̇ − q − B q̇.
     expected_force = skew.T @ qd - q - skew @ qd
-    np.testing.assert_allclose(system.mass_matrix(q, qd), spd, rtol=1e-13, atol=1e-12)
-    np.testing.assert_allclose(system.generalized_forces(q, qd), expected_force, atol=1e-11)
+    np.testing.assert_allclose(QUADRATIC.mass_matrix(q, qd, args=args), spd, rtol=1e-13, atol=1e-12)
+    np.testing.assert_allclose(QUADRATIC.generalized_forces(q, qd, args=args), expected_force, atol=1e-11)
 
 
 def test_explicit_time_derivative_term():
