@@ -199,7 +199,9 @@ def test_memory_grows_linearly_in_the_batch(kind):
 
     saved = TS.shape[0] * n * 8  # one member's saved q, float64
     state = n * 8  # one member's initial positions, float64
-    sizes = (16, 32, 64) if jax.default_backend() == "cpu" else (16, 32, 64, 128)
+    # From 32 members: below that a constant of XLA's buffer assignment still shifts (with events,
+    # 2556 B per member from 16 to 32, then 2590, 2592, 2592 B up to 256).
+    sizes = (32, 64, 128) if jax.default_backend() == "cpu" else (32, 64, 128, 256)
     stats = {batch: memory(batch) for batch in sizes}
     total = {batch: sum(s.values()) for batch, s in stats.items()}
     for batch, s in stats.items():  # exact on every backend: these buffers are the arrays themselves
@@ -207,20 +209,20 @@ def test_memory_grows_linearly_in_the_batch(kind):
         assert s["outputs"] == batch * saved, (batch, s)
 
     if jax.default_backend() == "cpu":
-        per_member_low = (total[32] - total[16]) / 16
-        per_member_high = (total[64] - total[32]) / 32
+        per_member_low = (total[64] - total[32]) / 32
+        per_member_high = (total[128] - total[64]) / 64
         assert per_member_low > 0
         # Linear up to XLA's 64-byte buffer alignment: padding depends on how many small (scalar
         # per member) buffers a batch needs, a few hundred bytes in all, not on B. Measured:
         # 892 B == 892 B unconstrained; 2652 B vs 2646 B with events (second difference 192 B).
-        second_difference = (total[64] - total[32]) - 2 * (total[32] - total[16])
-        assert abs(second_difference) <= 0.01 * (total[64] - total[32]), (per_member_low, per_member_high)
-        assert per_member_high < 20 * saved  # measured: 892 B (5.3×) and 2646 B (7.9×)
+        second_difference = (total[128] - total[64]) - 2 * (total[64] - total[32])
+        assert abs(second_difference) <= 0.01 * (total[128] - total[64]), (per_member_low, per_member_high)
+        assert per_member_high < 20 * saved  # measured: 892 B (5.3×) and 2592 B (7.7×)
     else:
         for batch in sizes[1:]:
-            added = batch - 16
-            assert stats[batch]["temp"] - stats[16]["temp"] >= added * 2 * state, (batch, stats)
-            assert total[batch] - total[16] <= added * 20 * saved, (batch, total)
+            added = batch - 32
+            assert stats[batch]["temp"] - stats[32]["temp"] >= added * 2 * state, (batch, stats)
+            assert total[batch] - total[32] <= added * 20 * saved, (batch, total)
 
 
 def test_batch_checks_on_the_host_name_the_member():

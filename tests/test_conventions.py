@@ -102,3 +102,17 @@ def test_host_values_become_jax_arrays_without_compiling():
         assert leaves["g"].dtype == jnp.float64 and leaves["k"].dtype == jnp.float32
         assert leaves["n"] == 3 and isinstance(leaves["n"], int)
         assert compiles.count == 0
+
+
+def test_as_array_leaves_leaves_non_array_leaves_of_modules_alone():
+    """An eqx.nn.MLP in args: its arrays keep their dtype, its activation function (not an
+    array) is the same object, so the module still runs and partitions as before."""
+    import equinox as eqx
+
+    from jaxlag._conventions import as_array_leaves
+
+    net = eqx.nn.MLP(2, 1, 3, 1, activation=jax.nn.softplus, key=jax.random.PRNGKey(0), dtype=jnp.float32)
+    out = as_array_leaves({"net": net, "g": 9.81}, jnp.float64)
+    assert out["net"].activation is net.activation
+    assert out["net"].layers[0].weight.dtype == jnp.float32 and out["g"].dtype == jnp.float64
+    np.testing.assert_array_equal(out["net"](jnp.ones(2, jnp.float32)), net(jnp.ones(2, jnp.float32)))

@@ -41,6 +41,8 @@ from ._events import (
     Events as Events,
     multiplier_limit as multiplier_limit,
 )
+from ._mechanics.friction import Coulomb as Coulomb
+from ._mechanics.impacts import Unilateral as Unilateral
 from ._fit import (
     Bounded as Bounded,
     Experiment as Experiment,
@@ -57,6 +59,11 @@ from ._stabilization import (
     Baumgarte as Baumgarte,
     Projection as Projection,
     consistent_initial_state as consistent_initial_state,
+)
+from ._mechanics.mass_solve import (
+    AbstractMassSolve as AbstractMassSolve,
+    CheckedCholesky as CheckedCholesky,
+    RobustSolve as RobustSolve,
 )
 from ._system import System as System
 from ._trajectory import Trajectory as Trajectory

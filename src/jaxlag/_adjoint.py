@@ -76,6 +76,15 @@ def _split_inexact(tree):
     return eqx.partition(tree, eqx.is_inexact_array)
 
 
+def _split_static(tree, box: dict):
+    """``tree`` without its non-array leaves (an ``eqx.nn.MLP``'s activation function in
+    ``args``, the system's functions), which are recorded in ``box["static"]``: what JAX
+    transformations return must be arrays, so these leaves go around them, known at trace time."""
+    arrays, static = eqx.partition(tree, eqx.is_array)
+    box["static"] = static
+    return arrays
+
+
 def _is_inexact_leaf(x) -> bool:
     return jnp.issubdtype(x.dtype, jnp.inexact)
 
@@ -101,9 +110,10 @@ def trace_outputs(run: Callable[[Any, Any], Any], inputs: Any, adjoint) -> tuple
             ),
             dynamic,
         )
-        closed, shapes = jax.make_jaxpr(lambda d: run(eqx.combine(d, static), adjoint), return_shape=True)(
-            spec
-        )
+        # Array outputs only: non-array leaves (functions in args) are no JAX types.
+        closed, shapes = jax.make_jaxpr(
+            lambda d: eqx.filter(run(eqx.combine(d, static), adjoint), eqx.is_array), return_shape=True
+        )(spec)
     except Exception:  # noqa: BLE001 - conservative: the general path is always correct
         return True, None
     return any(isinstance(c, jax.core.Tracer) for c in closed.consts), shapes
@@ -149,7 +159,12 @@ def _contract(sensitivities, cotangents, sizes, shapes):
     for s, c in zip(sensitivities, cotangents, strict=True):
         if c is None:
             continue
-        term = jnp.tensordot(s, c.astype(s.dtype), axes=c.ndim)
+        c = c.astype(s.dtype)
+        # Outputs the loss ignores (cotangent exactly 0) contribute 0, even where their
+        # sensitivities are not finite: the saved states of a run that failed (inf after the
+        # failure, a learned mass matrix gone indefinite) must not make 0 · inf = NaN.
+        s = jnp.where(c[None] == 0, jnp.zeros((), s.dtype), s)
+        term = jnp.tensordot(s, c, axes=c.ndim)
         total = term if total is None else total + term
     grads, offset = [], 0
     for (shape, dtype), size in zip(shapes, sizes):
@@ -166,11 +181,14 @@ def _push(run, static, adjoint, primals, tangents, axes, structure):
     """``run`` and its derivatives along the k unit directions: one compiled program
     (``jax.jvp`` under ``jax.vmap``), reused by every call with equal ``run``, static inputs
     and shapes. Inside it the solver's own jitted function is traced as in
-    :func:`trace_outputs`, so JAX's tracing cache serves it."""
+    :func:`trace_outputs`, so JAX's tracing cache serves it. Returns ``(outputs, tangents,
+    rest, static)``: the non-array leaves of the output (``static``) are returned by
+    ``filter_jit``, not by the transformations."""
+    box: dict[str, Any] = {}
 
     def one(tangent_leaves):
         return jax.jvp(
-            lambda v: _split_inexact(run(eqx.combine(v, static), adjoint)),
+            lambda v: _split_inexact(_split_static(run(eqx.combine(v, static), adjoint), box)),
             (primals,),
             (jax.tree.unflatten(structure, tangent_leaves),),
             has_aux=True,
@@ -181,8 +199,9 @@ def _push(run, static, adjoint, primals, tangents, axes, structure):
         # costs tracing time and buys nothing).
         single = [t[0] if axis is not None else t for t, axis in zip(tangents, axes)]
         primal, tangent, rest = one(single)
-        return primal, jax.tree.map(lambda x: x[None], tangent), rest
-    return jax.vmap(one, in_axes=(list(axes),), out_axes=(None, 0, None))(tangents)
+        return primal, jax.tree.map(lambda x: x[None], tangent), rest, box["static"]
+    primal, tangent, rest = jax.vmap(one, in_axes=(list(axes),), out_axes=(None, 0, None))(tangents)
+    return primal, tangent, rest, box["static"]
 
 
 class AbstractPushingRun(eqx.Module):
@@ -220,6 +239,7 @@ def call_with_forward_sensitivities(
     output_shapes: Any = None,
     finish: Callable[[Any], Any] | None = None,
     prepare: Callable[[Any], Any] | None = None,
+    check_residuals: Callable[[Any, Any], Any] | None = None,
 ) -> Any:
     """``run(inputs, adjoint)``, reverse-differentiated as :class:`ForwardSensitivities` says.
 
@@ -232,6 +252,10 @@ def call_with_forward_sensitivities(
     change the values. ``prepare``: applied to the (undifferentiated) inputs before ``run``, in
     the same place (``simulate`` checks the initial state there, on the host when the values are
     concrete, so that the pushed program carries no check); it must not change the values.
+    ``check_residuals(output, residuals)``: the residuals of the reverse pass, checked as
+    ``finish`` checks the output. A program that uses only the gradient (``jax.jit(jax.grad(…))``
+    of an event time) reads no primal output, and would drop the output's compiled check as
+    dead code; the backward pass reads the residuals, so their check stays.
     """
     dynamic, static = _split_inexact(inputs)
     shapes = [(jnp.shape(x), jnp.result_type(x)) for x in jax.tree.leaves(dynamic)]
@@ -241,15 +265,19 @@ def call_with_forward_sensitivities(
     # What the forward rule decided while tracing, read by the backward rule of the same trace
     # (residuals must be arrays): the size of each perturbed leaf, the output structure.
     decided: dict[str, Any] = {}
+    # The output's non-array leaves (the system's functions, an eqx.nn.MLP's activation in
+    # args), recorded by every Python evaluation below: they go around the custom_vjp and the
+    # transformations inside it, which return arrays only.
+    box: dict[str, Any] = {}
 
     def evaluate(values, adjoint):
-        return _split_inexact(run(eqx.combine(values, static), adjoint))
+        return _split_inexact(_split_static(run(eqx.combine(values, static), adjoint), box))
 
     def prepared(values):
         return _split_inexact(prepare(eqx.combine(values, static)))[0]
 
     def finished(inexact, rest):
-        return _split_inexact(finish(eqx.combine(inexact, rest)))
+        return _split_inexact(_split_static(finish(eqx.combine(inexact, rest, box["static"])), box))
 
     @jax.custom_vjp
     def call(values):
@@ -278,7 +306,10 @@ def call_with_forward_sensitivities(
             tangents, axes = _unit_tangents(shapes, sizes, k)
 
             def pushed(p, t):
-                return cast(AbstractPushingRun, run).push_along(p, static, t, tuple(axes), structure)
+                inexact, tangent, rest = cast(AbstractPushingRun, run).push_along(
+                    p, static, t, tuple(axes), structure
+                )
+                return inexact, tangent, _split_static(rest, box)
 
             out_shape = jax.eval_shape(pushed, primals, tangents)[0]
             out_bytes = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(out_shape))
@@ -302,7 +333,7 @@ def call_with_forward_sensitivities(
             return eqx.combine(inexact, rest), (None, pullback)
 
         tangents, axes = _unit_tangents(shapes, sizes, k)
-        inexact, sensitivities, rest = _push(
+        inexact, sensitivities, rest, box["static"] = _push(
             run, static, choice.inner, primals, tangents, tuple(axes), structure
         )
         inexact, rest = finished(inexact, rest)
@@ -318,6 +349,14 @@ def call_with_forward_sensitivities(
         if pullback is not None:
             dense = [jnp.zeros(c.aval.shape, c.aval.dtype) if _is_symbolic_zero(c) else c for c in cotangents]
             (grads,) = pullback(jax.tree.unflatten(decided["outputs"], dense))
+            # A run the loss ignores entirely (every cotangent exactly 0: a failed member masked
+            # out of a batch) has gradient 0: the pullback is linear, but its rejected non-finite
+            # steps would give 0 · NaN = NaN and poison the other members' sum.
+            ignored = jnp.asarray(True)
+            for c in cotangents:
+                if not _is_symbolic_zero(c):
+                    ignored = ignored & jnp.all(c == 0)
+            grads = jax.tree.map(lambda g: jnp.where(ignored, jnp.zeros((), g.dtype), g), grads)
             return (grads,)
         if sensitivities is None:
             grads = [jnp.zeros(shape, dtype) for shape, dtype in shapes]
@@ -330,5 +369,13 @@ def call_with_forward_sensitivities(
             )
         return (jax.tree.unflatten(structure, grads),)
 
-    call.defvjp(forward, backward, symbolic_zeros=True)
-    return call(dynamic)
+    def checked_forward(values):
+        output, residuals = forward(values)
+        if check_residuals is None or not jax.tree.leaves(residuals):
+            return output, residuals
+        arrays, static_residuals = eqx.partition(residuals, eqx.is_array)
+        full = eqx.combine(output, box.get("static"))
+        return output, eqx.combine(check_residuals(full, arrays), static_residuals)
+
+    call.defvjp(checked_forward, backward, symbolic_zeros=True)
+    return eqx.combine(call(dynamic), box["static"])

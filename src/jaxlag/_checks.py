@@ -4,6 +4,14 @@ When the inputs are concrete (``simulate`` called outside ``jit``/``vmap``) the 
 eagerly and raise ``ValueError`` with the numbers and the offending constraints. Under a
 transformation they become ``eqx.error_if`` checks compiled into the program, so bad input
 still stops the computation.
+
+The compiled checks compute no eigen-decomposition and no SVD: definiteness of ``M`` and
+independence of the constraint rows are read from Cholesky pivots
+(:func:`jaxlag._mechanics.mass_solve.pivots_pass`, :func:`~jaxlag._mechanics.mass_solve.independent_rows`),
+written out or looped in ``jax.numpy``. Batched LAPACK eigen-solvers under
+``jit(vmap(grad(...)))`` deadlocked jaxlib 0.10's CPU thread pool, and cost more than the
+solve they guard. The eager (host) diagnosis still reports the eigenvalues of ``M`` and the
+singular values of ``[J; A]``, computed by NumPy.
 """
 
 from __future__ import annotations
@@ -21,6 +29,7 @@ from ._errors import batch_prefix, failed_members, member
 from ._mechanics import constraints as _constraints
 from ._mechanics.kkt import accelerations_and_multipliers
 from ._mechanics.lagrangian import mass_matrix
+from ._mechanics.mass_solve import independent_rows, pivots_pass
 from ._misc import is_concrete
 from .coordinates import body_diagnostics, check_bodies, raise_for_bodies
 from ._tolerances import (
@@ -84,11 +93,13 @@ def initial_activity(system, q, t, args, tolerance):
 @compilation.filter_jit
 def _diagnostics(system, q, qd, t, args, tolerance, spectra=True):
     """``(values, failures)`` at the initial state, in one compiled call (one host transfer).
-    ``spectra=False``: without the eigenvalues of ``M`` and the singular values of the
-    constraint rows, and without the failures that need them (``None``): for
-    :func:`_diagnostics_on_host`, which computes those with NumPy."""
+    ``spectra=False``: without the definiteness and rank tests, and without the failures that
+    need them (``None``): for :func:`_diagnostics_on_host`, which computes the eigenvalues and
+    singular values with NumPy instead."""
     values = _diagnostic_values(system, q, qd, t, args, tolerance, spectra)
-    return values, (_failures(values, system.least_squares, tolerance) if spectra else None)
+    if not spectra:
+        return values, None
+    return values, _failures(values, system.least_squares, tolerance, check_mass=system.mass_solve.checked)
 
 
 def _diagnostics_on_host(system, q, qd, t, args, tolerance):
@@ -99,8 +110,15 @@ def _diagnostics_on_host(system, q, qd, t, args, tolerance):
     values, _ = _diagnostics(system, q, qd, t, args, tolerance, False)
     if not is_concrete(values):
         return None
-    values = jax.device_get(values)
-    rows, mass = values["rows"], values["mass"]
+    values = with_host_spectra(jax.device_get(values))
+    return values, _failures(values, system.least_squares, tolerance, np, system.mass_solve.checked)
+
+
+def with_host_spectra(values: dict) -> dict:
+    """``values`` (host, one state) with the eigenvalues of ``M`` and the singular values of the
+    constraint rows, computed by NumPy, for the messages."""
+    values = dict(values)
+    rows, mass = np.asarray(values["rows"]), np.asarray(values["mass"])
     # LAPACK does not converge on NaN: a non-finite M or J is reported as such (checked first),
     # its spectrum is NaN.
     values["eigenvalues"] = (
@@ -112,7 +130,7 @@ def _diagnostics_on_host(system, q, qd, t, args, tolerance):
         values["singular_values"] = np.linalg.svd(rows, compute_uv=False)
     else:
         values["singular_values"] = np.full((min(rows.shape),), np.nan, rows.dtype)
-    return values, _failures(values, system.least_squares, tolerance, np)
+    return values
 
 
 def _diagnostic_values(system, q, qd, t, args, tolerance, spectra=True):
@@ -137,12 +155,10 @@ def _diagnostic_values(system, q, qd, t, args, tolerance, spectra=True):
     )
     parameters = [jnp.all(jnp.isfinite(x)) for x in _inexact_leaves(args)]
     if spectra:
-        weighted = rows * row_weight[:, None]
+        # Cholesky pivots, not eigenvalues or singular values (see the module docstring).
         spectra = dict(
-            eigenvalues=jnp.linalg.eigvalsh(mass),
-            singular_values=(
-                jnp.linalg.svd(weighted, compute_uv=False) if rows.shape[0] > 0 else jnp.ones((1,), q.dtype)
-            ),
+            mass_ok=pivots_pass(mass, rcond(MASS_RCOND, q.dtype)),
+            rows_independent=independent_rows(rows * row_weight[:, None], rcond(CONSTRAINT_RCOND, q.dtype)),
         )
     else:
         spectra = {}
@@ -203,25 +219,35 @@ def unmarked_batch_hint(args, args_axes) -> str:
     )
 
 
-def _failures(d, least_squares: bool, tolerance: float, xp=jnp):
+def _failures(d, least_squares: bool, tolerance: float, xp=jnp, check_mass: bool = True):
     """Which checks fail, from :func:`_diagnostic_values` (``xp``: ``jax.numpy`` in a program,
-    ``numpy`` on the host)."""
-    eig = d["eigenvalues"]
-    sv = d["singular_values"]
-    residual = xp.concatenate([xp.abs(d["f"]), xp.abs(d["f_dot"]), xp.abs(d["g"]), xp.zeros((1,), eig.dtype)])
-    # As a float: num_active is a sum of 0/1 row weights (no implicit int/float promotion).
-    rank = xp.sum(sv > rcond(CONSTRAINT_RCOND, sv.dtype) * sv[0]).astype(d["num_active"].dtype)
+    ``numpy`` on the host). In a program the definiteness and rank tests are Cholesky pivots
+    (``mass_ok``, ``rows_independent``); on the host the eigenvalues and singular values (the
+    same thresholds, ``MASS_RCOND`` and ``CONSTRAINT_RCOND``). ``check_mass=False``
+    (:class:`~jaxlag.RobustSolve`): a mass matrix that is not positive definite is no error."""
+    dtype = d["mass"].dtype
+    if "eigenvalues" in d:
+        eig = d["eigenvalues"]
+        mass_bad = ~(eig[0] > rcond(MASS_RCOND, eig.dtype) * xp.max(xp.abs(eig)))
+        sv = d["singular_values"]
+        # As a float: num_active is a sum of 0/1 row weights (no implicit int/float promotion).
+        rank = xp.sum(sv > rcond(CONSTRAINT_RCOND, sv.dtype) * sv[0]).astype(d["num_active"].dtype)
+        dependent = rank < d["num_active"]
+    else:
+        mass_bad, dependent = ~d["mass_ok"], ~d["rows_independent"]
+    residual = xp.concatenate([xp.abs(d["f"]), xp.abs(d["f_dot"]), xp.abs(d["g"]), xp.zeros((1,), dtype)])
+    no = xp.asarray(False)
     return dict(
         nonfinite=~d["finite"],
         nonfinite_args=~xp.all(d["args_finite"]),
-        nonfinite_mass=~d["mass_finite"],
+        nonfinite_mass=~d["mass_finite"] if check_mass else no,
         # f and g finite, their derivative not (sqrt(x²) at 0): before the residual check, which
         # ḟ = J q̇ then fails as a consequence.
         nonfinite_jacobian=d["residuals_finite"] & ~d["jacobian_finite"],
         nonfinite_constraints=~d["constraints_finite"],
         not_diagonal=d["not_diagonal"],
-        mass=~(eig[0] > rcond(MASS_RCOND, eig.dtype) * xp.max(xp.abs(eig))),
-        rank=xp.asarray(False) if least_squares or d["rows"].shape[0] == 0 else rank < d["num_active"],
+        mass=mass_bad if check_mass else no,
+        rank=no if least_squares or d["rows"].shape[0] == 0 else dependent,
         off_manifold=~(xp.max(residual) <= tolerance),
         violated=d["violated"],
         wrong_sign=d["wrong_sign"],
@@ -440,7 +466,7 @@ def _batched_initial_message(static: _Static, payload) -> str | None:
         return None
     index = members[0]
     d_member, fail_member = member((d, fail), index)
-    text = _initial_message(d_member, fail_member, static)
+    text = _initial_message(with_host_spectra(d_member), fail_member, static)
     return batch_prefix(index, flags, members) + (text or "")
 
 
@@ -468,7 +494,7 @@ def validate_initial_state(system, q, qd, t, args, tolerance: float | None):
     # Concrete inputs can still give traced flags: a user function may close over a traced value.
     if is_concrete((q, qd, t, args, fail)):
         d_host, fail_host = jax.device_get((d, fail))  # one transfer; fetched only to report
-        text = _initial_message(d_host, fail_host, static)
+        text = _initial_message(with_host_spectra(d_host), fail_host, static)
         if text is not None:
             raise ValueError(text)
         return q, qd
@@ -610,10 +636,11 @@ def _error_if_any(x, fail: dict, causes: tuple[str, ...], messages: tuple[str, .
 def check_state_result(system, what: str, out, q, qd, t, args):
     """``out`` (a result of a System method at one state), or a ``ValueError`` naming why it
     cannot be trusted: a singular or indefinite mass matrix, redundant constraints, non-finite
-    inputs or a non-finite result (a singular M gives huge finite accelerations, not NaN, so the
-    eigenvalues are checked, with the thresholds of the initial-state check). Eager for concrete
-    values (the diagnostics program is the one ``simulate``'s check compiles); compiled in
-    otherwise."""
+    inputs or a non-finite result (a singular M gives huge finite accelerations, not NaN, so
+    definiteness is checked, with the thresholds of the initial-state check: eigenvalues on the
+    host, Cholesky pivots in a program). Eager for concrete values (the diagnostics program is
+    the one ``simulate``'s check compiles); compiled in otherwise, with no eigen-decomposition
+    or SVD. Not called for :class:`~jaxlag.RobustSolve` systems, whose failed states are NaN."""
 
     tolerance = default_constraint_tolerance(jnp.result_type(q))
     static = _Static(tuple(system.unilateral), tolerance, tuple(_inexact_names(args)))

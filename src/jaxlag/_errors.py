@@ -546,8 +546,9 @@ def _discontinuity_text(j, n, a, b, fa, fb, q, qd, dt) -> str:
             "(e.g. 1e-3 of the typical speed). Consequences: sticking becomes a slow creep at "
             "|v| ≈ ε·artanh(F/μN) under a force F < μN, and the force's slope μN/ε makes the "
             "equations stiff (steps of about m·ε/(μN) with an explicit solver), so a smaller ε "
-            "is more faithful and slower. Or model stick and slip as two phases switched by "
-            "events (jl.Event on v = 0 and on |F| = μN)."
+            "is more faithful and slower. Or, where the normal force is a constraint multiplier, "
+            "use the stick–slip element: jl.System(..., friction=jl.Coulomb(contact, tangent, "
+            "mu)) sticks exactly and switches at the closed-form times."
         )
     else:
         text += (
@@ -580,6 +581,12 @@ def _diagnosis(system, failure: Failure, args) -> str:
             text = f"There, {_CAUSES[name]} is non-finite."
             if name in ("mass_matrix", "accelerations") and _singular(eig):
                 text += f" M is singular there (eigenvalues {_fmt(eig)})."
+            elif name == "accelerations" and not getattr(system.mass_solve, "checked", True):
+                text += (
+                    f" M = ∂²L/∂q̇² has eigenvalues {_fmt(eig)} there: with "
+                    "mass_solve=jl.RobustSolve() a state whose (learned) M is not positive definite "
+                    "gives NaN, and the run ends at it."
+                )
             return text
     if _singular(eig):
         return (
@@ -662,7 +669,29 @@ def raise_if_failed(failure: Failure, system=None, args=None, *, args_batched=Fa
 
 
 def error_if_failed(failure: Failure, x):
-    """Compiled counterpart of :func:`raise_if_failed`: ``x``, or an ``eqx.branched_error_if``
-    with the static message of the failure's code (the record itself stays in the trajectory).
-    ``x`` should be an output the caller uses, so that the check is not removed as dead code."""
-    return eqx.branched_error_if(x, failure.code != NONE, failure.code, RESULT_MESSAGES)
+    """Compiled counterpart of :func:`raise_if_failed`: ``x`` (a pytree of floating-point
+    arrays), or an ``eqx.branched_error_if`` with the static message of the failure's code (the
+    record itself stays in the trajectory).
+
+    The check must survive dead-code elimination in programs that use only derivatives of ``x``
+    (``jax.jit(jax.grad(...))`` of an event time reads no primal output): the tangents of ``x``
+    are multiplied by a checked exact 1.0, so the derivative program runs the check too."""
+    return _checked(x, failure.code)
+
+
+def _checked_one(code, dtype):
+    return eqx.branched_error_if(jnp.ones((), dtype), code != NONE, code, RESULT_MESSAGES)
+
+
+@jax.custom_jvp
+def _checked(x, code):
+    return eqx.branched_error_if(x, code != NONE, code, RESULT_MESSAGES)
+
+
+@_checked.defjvp
+def _checked_jvp(primals, tangents):
+    x, code = primals
+    tx, _ = tangents
+    # Linear in the tangents (a product with a residual), so it transposes for reverse mode.
+    tx = jax.tree_util.tree_map(lambda t: t * _checked_one(code, t.dtype), tx)
+    return _checked(x, code), tx

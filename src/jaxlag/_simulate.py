@@ -237,11 +237,15 @@ def _user_functions(inputs: SimulationInputs):
         "dissipation": (q0, qd0),
         "forces": (q0, qd0),
     }
-    return [
+    called = [
         getattr(system, name)(*values, t=t0, args=args)
         for name, values in state.items()
         if getattr(system, name) is not None
     ]
+    if system.actuation is not None and system.control is not None:  # u = control(...), then Q_u
+        u = system.control(q0, qd0, t=t0, args=args)
+        called += [u, system.actuation(q0, qd0, u, t=t0, args=args)]
+    return called
 
 
 @compilation.filter_jit
@@ -376,7 +380,7 @@ class _Run(AbstractPushingRun):
     def __call__(self, inputs: SimulationInputs, adjoint):
         i = inputs
         if self.segmented:
-            ts_out, q, qd, active, log, failure, stats = solve_segments(
+            ts_out, q, qd, active, log, failure, stats, modes = solve_segments(
                 i.system,
                 i.q0,
                 i.qd0,
@@ -397,9 +401,19 @@ class _Run(AbstractPushingRun):
                 i.events.root_finder,
                 self.check,
                 self.tolerance,
+                i.events.zeno_time,
             )
             return Trajectory.from_states(
-                i.system, ts_out, q, qd, i.args, stats=stats, active=active, events=log, failure=failure
+                i.system,
+                ts_out,
+                q,
+                qd,
+                i.args,
+                stats=stats,
+                active=active,
+                events=log,
+                failure=failure,
+                modes=modes if i.system.friction else None,
             )
         return _solve(
             i.system,
@@ -551,7 +565,7 @@ def simulate(
         progress_meter = diffrax.NoProgressMeter()
     projection = as_projection(projection, system)
     events = as_events(events)
-    segmented = bool(events.conditions) or bool(system.unilateral)
+    segmented = bool(events.conditions) or bool(system.unilateral) or bool(system.friction)
     if segmented and (ts is None or event is not None or user_saveat):
         raise ValueError(
             "Unilateral constraints and jl.Event need save times `ts`, and neither a diffrax "
@@ -606,7 +620,10 @@ def simulate(
             prepare = None
             if run.check:
                 prepare = ft.partial(_checked_initial_state, tolerance=constraint_tolerance)
-            return call_with_forward_sensitivities(unchecked, inputs, adjoint, shapes, finish, prepare)
+            check_residuals = _check_residuals if throw else None
+            return call_with_forward_sensitivities(
+                unchecked, inputs, adjoint, shapes, finish, prepare, check_residuals
+            )
     elif isinstance(adjoint, ForwardSensitivities):
         # No traced input; a user function may still close over a value of the caller's grad,
         # which the fallback (reverse-mode) adjoint differentiates. Outside every transformation
@@ -636,11 +653,18 @@ def _checked_initial_state(inputs: SimulationInputs, tolerance) -> SimulationInp
     return dataclasses.replace(inputs, q0=q0, qd0=qd0)
 
 
+def _check_residuals(trajectory: Trajectory, residuals):
+    """The reverse pass's residuals, checked as the outputs are (see ``_raise_if_failed``)."""
+    return failures.error_if_failed(cast(failures.Failure, trajectory.failure), residuals)
+
+
 def _raise_if_failed(trajectory: Trajectory, system: System, args) -> Trajectory:
     """Eagerly (concrete result: synchronous, full diagnosis) or compiled into the program."""
     failure = cast(failures.Failure, trajectory.failure)  # simulate always records how it ended
     if is_concrete(failure):
         failures.raise_if_failed(failure, system, args)
         return trajectory
-    q = failures.error_if_failed(failure, trajectory.q)
-    return eqx.tree_at(lambda tr: tr.q, trajectory, q)
+    # On every floating-point output, not only q: a program that reads only an event time (e.g.
+    # jax.grad of a bounce time under jit) must not drop the check as dead code.
+    outputs, rest = eqx.partition(trajectory, eqx.is_inexact_array)
+    return eqx.combine(failures.error_if_failed(failure, outputs), rest)

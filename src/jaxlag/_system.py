@@ -13,6 +13,9 @@ from . import _compile as compilation
 from ._checks import check_state_result
 from ._custom_types import Args, Coordinates, Matrix, RealScalarLike, Scalar, Vector, Velocities
 from ._mechanics.constant_mass import ConstantMass
+from ._mechanics.mass_solve import AbstractMassSolve, CheckedCholesky
+from ._mechanics.impacts import Unilateral, as_unilateral
+from ._mechanics.friction import Coulomb, as_friction
 from ._mechanics import constraints as _constraints
 from ._mechanics import kkt as _kkt
 from ._mechanics import lagrangian as _mechanics
@@ -22,6 +25,7 @@ from ._conventions import (
     wrap_configuration_function,
     wrap_state_function,
 )
+from ._conventions import _wrap as _wrap_function
 
 
 class System(eqx.Module):
@@ -38,15 +42,37 @@ class System(eqx.Module):
       (Pfaffian ``A(q, t) q̇ + b(q, t) = 0``, e.g. rolling without slipping).
     - ``dissipation``: Rayleigh function ``R(q, qd, [t], [args]) -> scalar``; force ``−∂R/∂q̇``.
     - ``forces``: external generalized forces ``Q(q, qd, [t], [args]) -> (n,)``.
+    - ``actuation``: the generalized forces of a control input ``u``,
+      ``Q_u(q, qd, u, [t], [args]) -> (n,)``, e.g. a horizontal force on a cart
+      ``lambda q, qd, u: jnp.stack([u, 0.0])``. ``u`` enters as a generalized force:
+      ``M q̈ = F + Q_u(q, q̇, u, t) + Jᵀλ + Aᵀμ``. :func:`jaxlag.analysis.linearize` turns it into
+      the input matrix ``B = ∂(q̇, q̈)/∂u``.
+    - ``control``: the law giving the input, ``u = control(q, qd, [t], [args])``, a scalar or a
+      1-D array (k,): a feedback law, a time table (``lambda q, qd, t, args: args["u"](t)``
+      with a :mod:`jaxlag.inputs` table in ``args``), or both. Gains and tables in ``args`` make
+      one ``System`` serve open loop, linearization and closed loop; :meth:`with_control`
+      returns a copy with another law. A system with ``actuation`` needs a control law to be
+      simulated (there is no implied ``u = 0``: the size of ``u`` is the law's), and
+      :func:`~jaxlag.analysis.linearize` accepts ``u=`` instead.
     - ``least_squares``: accept redundant constraints (singular ``J M⁻¹ Jᵀ``) and report the
       minimum-norm multipliers instead of raising.
     - ``diagonal_mass``: declare ``M`` diagonal (Cartesian particles): ``M⁻¹`` is then a division,
       not a Cholesky factorization. Checked at the initial state.
+    - ``mass_solve``: how ``M q̈ = F + Jᵀλ + Aᵀμ`` is solved, a
+      :class:`~jaxlag.AbstractMassSolve`. ``jl.CheckedCholesky()`` (default): a state whose
+      ``M`` is not positive definite is an error (raised with the numbers). ``jl.RobustSolve()``,
+      for learned Lagrangians: such a state gives NaN accelerations and multipliers for that
+      state alone (under ``vmap``, one member), never an error, with a zero gradient; count them
+      with ``jnp.isnan(qdd).any(-1).sum()``.
     - ``unilateral``: indices of holonomic constraints that are one-sided, ``f_i(q, t) ≥ 0``
       with ``λ_i ≥ 0`` while in contact (a particle on the outside of a sphere ``r − R ≥ 0``,
       a string ``l − r ≥ 0``). :func:`~jaxlag.simulate` releases such a constraint when its
       multiplier crosses zero and re-engages it (perfectly plastic impact) when ``f_i`` returns
-      to zero.
+      to zero. ``unilateral=jl.Unilateral(indices, restitution=e)`` sets Newton's coefficient
+      of restitution ``ḟ⁺ = −e ḟ⁻`` at the impacts (the body rebounds for ``e > 0``).
+    - ``friction``: :class:`~jaxlag.Coulomb` elements (one or a sequence), Coulomb friction on
+      contact rows as a stick–slip element: ``M q̈ = F + Jᵀλ + Aᵀμ + Tᵀλ_t`` with
+      ``λ_t = −μ sign(v_t) λ_N`` while slipping and ``v_t = 0`` while ``|λ_t| ≤ μ λ_N``.
 
     Equations of motion (sign convention of the seeds):
     ``d/dt ∂L/∂q̇ − ∂L/∂q = Jᵀλ + Aᵀμ − ∂R/∂q̇ + Q``, i.e. ``M q̈ = F + Jᵀλ + Aᵀμ``.
@@ -57,11 +83,18 @@ class System(eqx.Module):
     velocity_constraints: UserFunction | None
     dissipation: UserFunction | None
     forces: UserFunction | None
+    actuation: UserFunction | None
+    control: UserFunction | None
     least_squares: bool = eqx.field(static=True)
     unilateral: tuple[int, ...] = eqx.field(static=True)
     diagonal_mass: bool = eqx.field(static=True)
+    mass_solve: AbstractMassSolve = CheckedCholesky()
     # Set by simulate while tracing when M does not depend on the state (jaxlag._mechanics.constant_mass).
     constant_mass: ConstantMass | None = None
+    # The impact law of the unilateral constraints (restitution); None: plastic (jaxlag._mechanics.impacts).
+    unilateral_law: Unilateral | None = None
+    # Coulomb friction elements on contact rows (jaxlag._mechanics.friction); () without friction.
+    friction: tuple[Coulomb, ...] = ()
 
     def __init__(
         self,
@@ -71,23 +104,48 @@ class System(eqx.Module):
         velocity_constraints: Callable | None = None,
         dissipation: Callable | None = None,
         forces: Callable | None = None,
+        actuation: Callable | None = None,
+        control: Callable | None = None,
         least_squares: bool = False,
-        unilateral: int | Sequence[int] = (),
+        unilateral: int | Sequence[int] | Unilateral = (),
         diagonal_mass: bool = False,
+        mass_solve: AbstractMassSolve = CheckedCholesky(),
+        friction: Coulomb | Sequence[Coulomb] | None = None,
     ):
         self.lagrangian = wrap_state_function(lagrangian, "lagrangian")
         self.holonomic = wrap_configuration_function(holonomic, "holonomic constraint function")
         self.velocity_constraints = wrap_state_function(velocity_constraints, "velocity constraint function")
         self.dissipation = wrap_state_function(dissipation, "dissipation function")
         self.forces = wrap_state_function(forces, "force function")
+        self.actuation = _wrap_actuation(actuation)
+        self.control = wrap_state_function(control, "control law")
+        if control is not None and actuation is None:
+            raise ValueError(_CONTROL_WITHOUT_ACTUATION)
         self.least_squares = bool(least_squares)
         self.diagonal_mass = bool(diagonal_mass)
+        if not isinstance(mass_solve, AbstractMassSolve):
+            raise TypeError(
+                "mass_solve must be jl.CheckedCholesky() or jl.RobustSolve(); got "
+                f"{type(mass_solve).__name__}."
+            )
+        self.mass_solve = mass_solve
         self.constant_mass = None
-        if isinstance(unilateral, int):
-            unilateral = (unilateral,)
-        self.unilateral = tuple(sorted({int(i) for i in unilateral}))
+        law = as_unilateral(unilateral)
+        self.unilateral = law.indices
+        self.unilateral_law = law if isinstance(unilateral, Unilateral) else None
         if self.unilateral and holonomic is None:
             raise ValueError("unilateral names holonomic constraints, but no holonomic function was given.")
+        self.friction = as_friction(friction)
+        if self.friction and holonomic is None:
+            raise ValueError("friction acts on contact rows of the holonomic constraints; none was given.")
+
+    def with_control(self, control: Callable | None) -> System:
+        """A copy of this system with the control law ``u = control(q, qd, [t], [args])``
+        (``None``: without one). The copy shares every other function and field."""
+        if control is not None and self.actuation is None:
+            raise ValueError(_CONTROL_WITHOUT_ACTUATION)
+        law = wrap_state_function(control, "control law")
+        return eqx.tree_at(lambda s: s.control, self, law, is_leaf=lambda x: x is None)
 
     # ----------------------------------------------------------------- structure and checks
     @property
@@ -150,6 +208,18 @@ class System(eqx.Module):
                     f"unilateral={self.unilateral} names constraints {bad}, but the holonomic "
                     f"function returns only {out[0]} entries."
                 )
+            bad = [e.contact for e in self.friction if not e.contact < out[0]]
+            if bad:
+                raise ValueError(
+                    f"friction names contact rows {bad}, but the holonomic function returns only "
+                    f"{out[0]} entries."
+                )
+            for e in self.friction:
+                tau = jax.eval_shape(lambda x, e=e: e.tangent(x, t=t, args=args), q).shape
+                if tau != ():
+                    raise ValueError(
+                        f"A Coulomb tangent function must return a scalar; it returned shape {tau}."
+                    )
         if self.velocity_constraints is not None:
             out = shape_of(self.velocity_constraints, q, qd)
             if len(out) != 1:
@@ -170,6 +240,10 @@ class System(eqx.Module):
                     f"The force function must return generalized forces of shape ({n},), like q; "
                     f"it returned shape {out}."
                 )
+        law = self.control
+        if law is not None:
+            u = jax.eval_shape(lambda x, v: law(x, v, t=t, args=args), q, qd)
+            check_input_shape(self, q, qd, u, t, args, "The control law")
 
     # ----------------------------------------------------------------- mechanics at a state
     def _at_state(self, quantity, q, qd, t, args):
@@ -178,7 +252,8 @@ class System(eqx.Module):
         t = _mechanics.as_time(t, q)
         args = as_array_leaves(args, q.dtype if jnp.issubdtype(q.dtype, jnp.floating) else None)
         out = _evaluate_at_state(quantity, self, q, qd, t, args)
-        if quantity in _SOLVED:
+        if quantity in _SOLVED and self.mass_solve.checked:
+            # RobustSolve: a failed state is NaN by design (jaxlag._mechanics.mass_solve).
             # The KKT solve turns a singular M or redundant rows into NaN: say so instead.
             out = check_state_result(self, quantity.__name__.strip("_"), out, q, qd, t, args)
         return out
@@ -248,8 +323,53 @@ class System(eqx.Module):
     def input_power(
         self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
     ) -> Scalar:
-        """``q̇·Q``: power delivered by external forces."""
+        """``q̇·(Q + Q_u)``: power delivered by external forces and the actuation."""
         return self._at_state(_mechanics.input_power, q, qd, t, args)
+
+    def control_input(
+        self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
+    ) -> Float[Array, " *k"]:
+        """The input ``u = control(q, q̇, t)`` of the control law: a scalar or shape (k,)."""
+        return self._at_state(_mechanics.control_input, q, qd, t, args)
+
+
+def _wrap_actuation(fn: Callable | None) -> UserFunction | None:
+    """Wrap ``Q_u(q, qd, u, [t], [args])``: three state arguments, ``t`` and ``args`` by keyword."""
+    try:
+        return _wrap_function(fn, "actuation function", 3)
+    except TypeError as error:  # the shared messages name the state (q) of a 1-argument function
+        text = (
+            str(error)
+            .replace("argument(s) (q)", "argument(s) (q, qd, u)")
+            .replace("(q, t=t", "(q, qd, u, t=t")
+        )
+        raise TypeError(text) from None
+
+
+_CONTROL_WITHOUT_ACTUATION = (
+    "A control law needs an `actuation`: the generalized forces Q_u(q, qd, u, [t], [args]) "
+    "through which its input u acts (M q̈ = F + Q_u + Jᵀλ), e.g. "
+    "jl.System(L, actuation=lambda q, qd, u: jnp.stack([u, 0.0]), control=law)."
+)
+
+
+def check_input_shape(system, q, qd, u, t, args, what: str) -> None:
+    """Raise if the input ``u`` (an array or shape-dtype struct) is not a scalar or a 1-D array,
+    or if ``Q_u(q, q̇, u, t)`` is not of shape (n,) (shapes only, no computation)."""
+    shape = tuple(u.shape)
+    if len(shape) > 1:
+        raise ValueError(
+            f"{what} must give the input u as a scalar or a 1-D array (k,); it gave shape {shape}. "
+            "Flatten a matrix of inputs (and index it so in the actuation)."
+        )
+    n = q.shape[0]
+    u = jax.ShapeDtypeStruct(shape, q.dtype)  # the input is used in the state's dtype
+    out = jax.eval_shape(lambda x, v, w: system.actuation(x, v, w, t=t, args=args), q, qd, u).shape
+    if out != (n,):
+        raise ValueError(
+            f"The actuation function must return the generalized forces of the input, shape ({n},) "
+            f"like q; with u of shape {shape} it returned shape {out}."
+        )
 
 
 def _array_args_behind(fn, q, qd, t, args) -> list[tuple[tuple, tuple]]:

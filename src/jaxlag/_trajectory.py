@@ -8,39 +8,45 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from . import _compile as compilation
 from ._custom_types import Args, Multipliers, States, Times
 from ._errors import Failure, raise_if_failed
 from ._events import EventLog
 from ._mechanics import constraints as _constraints
-from ._mechanics import kkt as _kkt
+from ._mechanics import friction as _friction
 from ._mechanics import lagrangian as _mechanics
 from ._system import System
 
 
-def _constraint_forces(system, q, qd, t, args, active):
-    _, lam, mu = _kkt.accelerations_and_multipliers(system, q, qd, t, args, active=active)
+def _constraint_forces(system, q, qd, t, args, active, modes):
+    _, lam, mu, lam_t = _friction.solve_with_modes(system, q, qd, t, args, active=active, modes=modes)
     rows, _ = _constraints.constraint_rows(system, q, qd, t, args)
-    return rows.T @ jnp.concatenate([lam, mu])
+    forces = rows.T @ jnp.concatenate([lam, mu])
+    if system.friction:
+        forces = forces + _friction.tangent_terms(system, q, qd, t, args)[2].T @ lam_t
+    return forces
 
 
 def _kkt_output(index):
-    def quantity(system, q, qd, t, args, active):
-        return _kkt.accelerations_and_multipliers(system, q, qd, t, args, active=active)[index]
+    # The KKT solve with each Coulomb contact in its saved stick/slip mode (without friction,
+    # or modes None: jaxlag._mechanics.kkt's).
+    def quantity(system, q, qd, t, args, active, modes):
+        return _friction.solve_with_modes(system, q, qd, t, args, active=active, modes=modes)[index]
 
     return quantity
 
 
 def _state_only(fn):
-    return lambda system, q, qd, t, args, active: fn(system, q, qd, t, args)
+    return lambda system, q, qd, t, args, active, modes: fn(system, q, qd, t, args)
 
 
 _QUANTITIES = {
     "accelerations": _kkt_output(0),
     "multipliers": _kkt_output(1),
     "velocity_multipliers": _kkt_output(2),
+    "friction_forces": _kkt_output(3),
     "constraint_forces": _constraint_forces,
     "energy": _state_only(_mechanics.energy),
     "momenta": _state_only(_mechanics.momenta),
@@ -48,21 +54,24 @@ _QUANTITIES = {
     "constraint_residuals": _state_only(_constraints.constraint_residuals),
     "dissipated_power": _state_only(_mechanics.dissipated_power),
     "input_power": _state_only(_mechanics.input_power),
+    "controls": _state_only(_mechanics.control_input),
 }
 
 
 @compilation.filter_jit
-def _evaluate(name: str, system_arrays, system_static, t, q, qd, args, active):
+def _evaluate(name: str, system_arrays, system_static, t, q, qd, args, active, modes=None):
     quantity = _QUANTITIES[name]
 
-    def along_time(arrays, t_, q_, qd_, a_, active_):
+    def along_time(arrays, t_, q_, qd_, a_, active_, modes_):
         system = eqx.combine(arrays, system_static)
-        return jax.vmap(lambda s, x, v, m: quantity(system, x, v, s, a_, m))(t_, q_, qd_, active_)
+        return jax.vmap(lambda s, x, v, m, c: quantity(system, x, v, s, a_, m, c))(
+            t_, q_, qd_, active_, modes_
+        )
 
     fn = along_time
     for _ in range(q.ndim - 2):  # batch dimensions added by vmap-ing simulate
         fn = jax.vmap(fn)
-    return fn(system_arrays, t, q, qd, args, active)
+    return fn(system_arrays, t, q, qd, args, active, modes)
 
 
 class Trajectory(eqx.Module):
@@ -75,6 +84,10 @@ class Trajectory(eqx.Module):
 
     Multipliers and constraint forces are those of the exact constrained equations at the saved
     state (without any Baumgarte feedback term), with the convention ``M q̈ = F + Jᵀλ + Aᵀμ``.
+    With Coulomb friction (:class:`~jaxlag.Coulomb`) they are those of the frictional solve in
+    the stick/slip mode each contact was in at the saved time (:attr:`friction_modes`),
+    ``M q̈ = F + Jᵀλ + Aᵀμ + Tᵀλ_t``; the tangential forces ``λ_t`` are
+    :attr:`friction_forces` and ``constraint_forces`` includes ``Tᵀλ_t``.
     """
 
     t: Times
@@ -98,6 +111,10 @@ class Trajectory(eqx.Module):
     #: :class:`jaxlag._errors.Failure`: how the run ended (``code`` 0: completed), or None.
     failure: Failure | None
     system_static: System = eqx.field(static=True)
+    #: Friction mode (T, k) of each :class:`~jaxlag.Coulomb` contact at the saved times: 0
+    #: sticking, +1 slipping with ``v_t > 0``, −1 with ``v_t < 0`` (0 also where the contact's
+    #: normal row does not act, see :attr:`active`); None without friction.
+    friction_modes: Int[Array, "*batch times k"] | None = None
 
     @classmethod
     def from_states(
@@ -112,9 +129,10 @@ class Trajectory(eqx.Module):
         active: Bool[Array, "*batch times m_h"] | None = None,
         events: EventLog | None = None,
         failure: Failure | None = None,
+        modes: Int[Array, "*batch times k"] | None = None,
     ) -> Trajectory:
         arrays, static = eqx.partition(system, eqx.is_array)
-        return cls(t, q, qd, args, stats, result, arrays, active, events, failure, static)
+        return cls(t, q, qd, args, stats, result, arrays, active, events, failure, static, modes)
 
     def raise_if_failed(self) -> None:
         """Raise :class:`jaxlag.SimulationError` with the numbers and a diagnosis if the run
@@ -140,6 +158,7 @@ class Trajectory(eqx.Module):
             self.qd,
             self.args,
             self.active,
+            self.friction_modes,
         )
 
     @property
@@ -159,8 +178,16 @@ class Trajectory(eqx.Module):
 
     @property
     def constraint_forces(self) -> States:
-        """Generalized constraint forces ``Qᶜ = Jᵀλ + Aᵀμ`` (T, n)."""
+        """Generalized constraint forces ``Qᶜ = Jᵀλ + Aᵀμ`` (T, n) (``+ Tᵀλ_t`` with friction)."""
         return self._get("constraint_forces")
+
+    @property
+    def friction_forces(self) -> Float[Array, "*batch times k"]:
+        """Tangential force ``λ_t`` (T, k) of each :class:`~jaxlag.Coulomb` contact, the
+        coefficient of ``Tᵀ`` (``T = ∂τ/∂q``) in ``M q̈ = F + Jᵀλ + Tᵀλ_t``: the stick row's
+        multiplier while sticking (``|λ_t| ≤ μ λ_N``), ``−μ sign(v_t) λ_N`` while slipping, 0
+        where the normal row does not act. Shape (T, 0) without friction."""
+        return self._get("friction_forces")
 
     @property
     def energy(self) -> Float[Array, "*batch times"]:
@@ -189,5 +216,11 @@ class Trajectory(eqx.Module):
 
     @property
     def input_power(self) -> Float[Array, "*batch times"]:
-        """``q̇·Q`` (T,)."""
+        """``q̇·(Q + Q_u)`` (T,): power of the external forces and the actuation."""
         return self._get("input_power")
+
+    @property
+    def controls(self) -> Float[Array, "..."]:
+        """The input ``u = control(q, q̇, t)`` of the system's control law: (T,) for a scalar
+        input, (T, k) for a vector one (after any batch axes)."""
+        return self._get("controls")

@@ -169,7 +169,7 @@ def _lagrangian_gradient(system, q, v, t, args):
 
 
 def _has_forces(system):
-    return system.dissipation is not None or system.forces is not None
+    return system.dissipation is not None or system.forces is not None or system.actuation is not None
 
 
 def _discrete_derivatives(system, rule, q0, dq, t0, h, args):
@@ -628,6 +628,10 @@ def simulate_variational(
         raise NotImplementedError(
             "simulate_variational does not handle unilateral constraints (contact switching); "
             "use jl.simulate."
+        )
+    if system.friction:
+        raise NotImplementedError(
+            "simulate_variational does not handle Coulomb friction (stick–slip switching); use jl.simulate."
         )
     if system.least_squares:
         raise NotImplementedError(

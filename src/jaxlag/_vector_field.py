@@ -1,15 +1,17 @@
 """The equations of motion as a diffrax vector field: ``(q, q̇) ↦ (q̇, q̈)``.
 
 ``q̈`` solves ``M q̈ = F + Jᵀλ`` (with ``J q̈ = −γ`` and optional Baumgarte feedback) for a
-constrained system, ``M q̈ = F`` otherwise.
+constrained system, ``M q̈ = F`` otherwise; with Coulomb friction in a given stick/slip mode
+``M q̈ = F + Jᵀλ + Tᵀλ_t`` (:mod:`jaxlag._mechanics.friction`).
 """
 
 from __future__ import annotations
 
 import equinox as eqx
-from jaxtyping import Array, Bool
+from jaxtyping import Array, Bool, Float
 
 from ._custom_types import Args, RealScalarLike, Vector
+from ._mechanics.friction import solve_with_modes
 from ._mechanics.kkt import accelerations_and_multipliers
 from ._mechanics.lagrangian import unconstrained_accelerations
 from ._stabilization import Baumgarte
@@ -25,10 +27,21 @@ class EquationsOfMotion(eqx.Module):
     system: System
     baumgarte: Baumgarte | None = None
     active: Bool[Array, " m_h"] | None = None  # holonomic activity mask while unilateral constraints are off
+    # Friction mode per Coulomb contact (0 stick, ±1 slip; jaxlag._mechanics.friction), or None.
+    modes: Float[Array, " k"] | None = None
 
     def __call__(self, t: RealScalarLike, y: tuple[Vector, Vector], args: Args) -> tuple[Vector, Vector]:
         q, qd = y
-        if self.system.is_constrained:
+        if self.system.friction and self.modes is None:
+            raise ValueError(
+                "This system has Coulomb friction (jl.Coulomb), whose equations depend on the "
+                "stick/slip mode of each contact: jl.simulate integrates it (in segments between "
+                "the switches); pass EquationsOfMotion(system, baumgarte, active, modes) to use "
+                "the field directly. The ensemble and variational integrators do not support it."
+            )
+        if self.modes is not None and self.system.friction:
+            qdd = solve_with_modes(self.system, q, qd, t, args, self.baumgarte, self.active, self.modes)[0]
+        elif self.system.is_constrained:
             qdd = accelerations_and_multipliers(self.system, q, qd, t, args, self.baumgarte, self.active)[0]
         else:
             qdd = unconstrained_accelerations(self.system, q, qd, t, args)

@@ -87,12 +87,13 @@ def _batched_mask(args, args_axes):
             )
         return axis == 0
 
+    # Leaves that are not arrays or numbers (an eqx.nn.MLP's activation function) are shared.
     if args_axes is None or args_axes == 0:
         flag = check(args_axes)
-        return jax.tree.map(lambda _: flag, args)
+        return jax.tree.map(lambda leaf: flag and eqx.is_array_like(leaf), args)
     try:
         return jax.tree.map(
-            lambda axis, sub: jax.tree.map(lambda _: check(axis), sub),
+            lambda axis, sub: jax.tree.map(lambda leaf: check(axis) and eqx.is_array_like(leaf), sub),
             args_axes,
             args,
             is_leaf=lambda x: x is None,
@@ -166,16 +167,22 @@ def _run_batch(
 ):
     """The vmapped simulation; with ``initial_check = (t0, tolerance)`` also every member's
     initial-state diagnostics, returned as values for the host to raise (no callback)."""
+    # The trajectory's non-array leaves (the system's functions, an eqx.nn.MLP's activation in
+    # args) go around vmap, which maps arrays only.
+    box = {}
 
     def one(q, qd, member_args):
         member_args = eqx.combine(member_args, shared_args)
-        traj = simulate(system, q, qd, ts, args=member_args, **kwargs)
+        traj, box["static"] = eqx.partition(
+            simulate(system, q, qd, ts, args=member_args, **kwargs), eqx.is_array
+        )
         if initial_check is None:
             return traj, None
         t0, tolerance = initial_check
         return traj, checking.initial_state_diagnostics(system, q, qd, t0, member_args, tolerance)
 
     out, diagnostics = jax.vmap(one, in_axes=(q_axis, qd_axis, 0))(q0, qd0, batched_args)
+    out = eqx.combine(out, box["static"])
     if out_sharding is not None:
         # The inputs arrive sharded along the batch axis; XLA's SPMD partitioner propagates that
         # through the vmapped program, so each device integrates its slice. (The batched solver
@@ -404,7 +411,13 @@ def _raise_for_failed_members(out: Trajectory, throw: bool, system, batched_args
     if not throw or out.failure is None:
         return out
     if not is_concrete(out.failure):
-        return eqx.tree_at(lambda tr: tr.q, out, failures.error_if_failed(out.failure, out.q))
+        # The record carries no derivative: under jax.grad its integer code would otherwise
+        # reach equinox's unvmap_max with a tangent, which has no differentiation rule.
+        failure = jax.lax.stop_gradient(out.failure)
+        # Every floating-point output, and (failures.error_if_failed) their derivatives: a
+        # program that reads only an event time or only a gradient keeps the check.
+        outputs, rest = eqx.partition(out, eqx.is_inexact_array)
+        return eqx.combine(failures.error_if_failed(failure, outputs), rest)
     if out.failure.code.is_fully_addressable:
         if is_concrete((batched_args, shared_args)):
             member_args = _member_args(batched_args, shared_args)

@@ -57,6 +57,11 @@ def unsupported(system, ts, options: dict) -> str | None:
             "unilateral constraints switch per member at events; the ensemble integrator has "
             "no event handling. " + _VMAP
         )
+    if system.friction:
+        return (
+            "Coulomb friction switches per member at events; the ensemble integrator has no event handling. "
+            + _VMAP
+        )
     if as_events(options["events"]).conditions:
         return "jl.Event conditions are not supported by the ensemble integrator. " + _VMAP
     if options["event"] is not None:

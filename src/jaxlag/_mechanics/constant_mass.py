@@ -124,6 +124,12 @@ def constant_mass(system, q, qd, t, args) -> ConstantMass | None:
         return None
     if on_state:
         return None
+    if not system.mass_solve.checked:
+        # A learned constant M (jl.RobustSolve) is judged by its factorization: a failed one
+        # gives a NaN inverse with a zero gradient, never NumPy's inverse of an indefinite M.
+        mass = mass_matrix(system, q, qd, t, args)
+        factor = system.mass_solve.factor(mass, system.diagonal_mass)
+        return ConstantMass(matrix=mass, inverse=factor(jnp.eye(q.shape[0], dtype=q.dtype)))
     if not on_parameters:
         value = _concrete_mass(system, q, qd, t, args)
         if value is not None:

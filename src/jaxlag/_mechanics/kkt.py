@@ -25,7 +25,8 @@ from typing import Any, Callable
 import jax.numpy as jnp
 
 from .constraints import constraint_rows
-from .linalg import solve_psd_least_squares, solve_spd, spd_solver
+from .linalg import solve_psd_least_squares, solve_spd
+from .mass_solve import AbstractMassSolve, CheckedCholesky, Factorization, nan_unless
 from .lagrangian import mass_solver_and_forces
 
 
@@ -42,17 +43,34 @@ def deactivate(rows, rhs, active):
     return rows * weight[:, None], rhs * weight, jnp.diag(1.0 - weight)
 
 
-def solve_kkt(mass, force, rows, rhs, least_squares: bool = False, active=None, diagonal_mass: bool = False):
+def solve_kkt(
+    mass,
+    force,
+    rows,
+    rhs,
+    least_squares: bool = False,
+    active=None,
+    diagonal_mass: bool = False,
+    mass_solve: AbstractMassSolve = CheckedCholesky(),
+):
     """Solve ``M q̈ = F + Gᵀ Λ``, ``G q̈ = c``; return ``(q̈, Λ)``.
 
     ``mass`` is ``M`` (n, n), factored here (a division if ``diagonal_mass``), or a function
-    ``b ↦ M⁻¹ b`` for vectors and matrices (e.g. :func:`jaxlag._mechanics.linalg.spd_solver`'s result);
-    ``active`` (m,) optionally switches constraints off (their multipliers are zero).
+    ``b ↦ M⁻¹ b`` for vectors and matrices (a :class:`~jaxlag._mechanics.mass_solve.Factorization`,
+    :func:`jaxlag._mechanics.linalg.spd_solver`'s result); ``active`` (m,) optionally switches
+    constraints off (their multipliers are zero). ``mass_solve`` factors ``M`` and the Schur
+    complement: with :class:`~jaxlag.RobustSolve` a failed ``M`` or Schur complement makes the
+    whole result NaN, computed from finite intermediate values (zero gradient, never NaN).
     """
-    solve_mass: Callable[[Any], Any] = mass if callable(mass) else spd_solver(mass, diagonal_mass)
+    factored = mass if isinstance(mass, Factorization) else None
+    if factored is None and not callable(mass):
+        factored = mass_solve.factor(mass, diagonal_mass)
+    # The finite solve: NaN enters only at the end, where ok is known (see Factorization).
+    solve_mass: Callable[[Any], Any] = factored.finite if factored is not None else mass
+    ok = factored.ok if factored is not None else jnp.asarray(True)
     m = rows.shape[0]
     if m == 0:
-        return solve_mass(force), jnp.zeros((0,), force.dtype)
+        return nan_unless(ok, solve_mass(force)), jnp.zeros((0,), force.dtype)
     rows, rhs, pad = deactivate(rows, rhs, active)
     solved = solve_mass(jnp.concatenate([force[:, None], rows.T], axis=1))
     free, minv_gt = solved[:, 0], solved[:, 1:]
@@ -62,9 +80,13 @@ def solve_kkt(mass, force, rows, rhs, least_squares: bool = False, active=None, 
     residual = rhs - rows @ free
     if least_squares:
         multipliers = solve_psd_least_squares(schur, residual)
-    else:
+    elif mass_solve.checked:
         multipliers = solve_spd(schur, residual)
-    return free + minv_gt @ multipliers, multipliers
+    else:
+        schur_factor = mass_solve.factor(0.5 * (schur + schur.T))
+        multipliers = schur_factor.finite(residual)
+        ok = ok & schur_factor.ok
+    return nan_unless(ok, free + minv_gt @ multipliers), nan_unless(ok, multipliers)
 
 
 def accelerations_and_multipliers(system, q, qd, t, args, baumgarte=None, active=None):
@@ -78,5 +100,7 @@ def accelerations_and_multipliers(system, q, qd, t, args, baumgarte=None, active
     m_h = system.num_holonomic(q, t, args)
     if active is not None:
         active = jnp.concatenate([jnp.asarray(active, q.dtype), jnp.ones((rows.shape[0] - m_h,), q.dtype)])
-    qdd, multipliers = solve_kkt(solve_mass, force, rows, rhs, system.least_squares, active)
+    qdd, multipliers = solve_kkt(
+        solve_mass, force, rows, rhs, system.least_squares, active, mass_solve=system.mass_solve
+    )
     return qdd, multipliers[:m_h], multipliers[m_h:]

@@ -8,7 +8,8 @@ expand, with ``p = ∂L/∂q̇``, to ``M q̈ = F`` where
 
     M = ∂²L/∂q̇²                                     (mass matrix)
     F = ∂L/∂q − (∂²L/∂q̇∂q) q̇ − ∂²L/∂q̇∂t + Qⁿᶜ         (generalized forces)
-    Qⁿᶜ = −∂R/∂q̇ + Q_ext                            (Rayleigh dissipation, external forces).
+    Qⁿᶜ = −∂R/∂q̇ + Q_ext + Q_u(q, q̇, u, t)          (Rayleigh dissipation, external forces,
+                                                      actuation of the input u = control(q, q̇, t)).
 
 ``M`` and the velocity terms come from forward-over-reverse products: the gradient
 ``(∂L/∂q, ∂L/∂q̇)`` is pushed forward along ``(q̇, 0, 1)`` in ``(q, q̇, t)`` (giving
@@ -21,8 +22,6 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike
-
-from .linalg import spd_solver
 
 
 def time_dtype(dtype) -> jnp.dtype:
@@ -89,13 +88,41 @@ def mass_along(system, q, qd, t, args, basis):
 
 
 def nonconservative_forces(system, q, qd, t, args):
-    """``Qⁿᶜ = −∂R/∂q̇ + Q_ext(q, q̇, t)``; zero when neither is given."""
+    """``Qⁿᶜ = −∂R/∂q̇ + Q_ext(q, q̇, t) + Q_u(q, q̇, u, t)``; zero when none is given."""
     total = jnp.zeros_like(q)
     if system.dissipation is not None:
         total = total - jax.grad(lambda v: system.dissipation(q, v, t=t, args=args))(qd)
     if system.forces is not None:
         total = total + jnp.asarray(system.forces(q, qd, t=t, args=args), dtype=q.dtype)
+    if system.actuation is not None:
+        total = total + actuation_forces(system, q, qd, t, args)
     return total
+
+
+def control_input(system, q, qd, t: ArrayLike = 0.0, args=None):
+    """The input ``u = control(q, q̇, t)`` of the system's control law (a scalar or (k,))."""
+    if system.actuation is None:
+        raise ValueError(
+            "This system has no control input: give jl.System(..., actuation=Q_u, control=law), "
+            "with Q_u(q, qd, u, [t], [args]) the generalized forces of the input u."
+        )
+    if system.control is None:
+        raise ValueError(
+            "This system has an actuation Q_u(q, qd, u) but no control law giving its input u. "
+            "Give one: jl.System(..., control=law) or system.with_control(law), with "
+            "u = law(q, qd, [t], [args]), e.g. a time table lambda q, qd, t, args: args['u'](t) "
+            "for an open loop (jaxlag.inputs). jaxlag.analysis.linearize takes u= instead."
+        )
+    u = system.control(q, qd, t=as_time(t, q), args=args)
+    return jnp.asarray(u, dtype=q.dtype)
+
+
+def actuation_forces(system, q, qd, t, args, u=None):
+    """``Q_u(q, q̇, u, t)``, shape (n,), with ``u`` from the control law unless given."""
+    t = as_time(t, q)
+    if u is None:
+        u = control_input(system, q, qd, t, args)
+    return jnp.asarray(system.actuation(q, qd, u, t=t, args=args), dtype=q.dtype)
 
 
 def mass_matrix(system, q, qd, t: ArrayLike = 0.0, args=None):
@@ -115,7 +142,8 @@ def mass_solver(system, q, qd, t, args):
     """``b ↦ M⁻¹ b`` at a state: ``M`` factored once (or the precomputed constant inverse)."""
     if system.constant_mass is not None:
         return system.constant_mass.solve
-    return spd_solver(mass_matrix(system, q, qd, t, args), system.diagonal_mass)
+    # The system's mass_solve (jaxlag._mechanics.mass_solve): checked Cholesky, or NaN on failure.
+    return system.mass_solve.factor(mass_matrix(system, q, qd, t, args), system.diagonal_mass)
 
 
 def mass_solver_and_forces(system, q, qd, t, args):
@@ -124,7 +152,7 @@ def mass_solver_and_forces(system, q, qd, t, args):
     if system.constant_mass is not None:
         solve = system.constant_mass.solve
     else:
-        solve = spd_solver(mass, system.diagonal_mass)
+        solve = system.mass_solve.factor(mass, system.diagonal_mass)
     return solve, force
 
 
@@ -167,8 +195,11 @@ def dissipated_power(system, q, qd, t=0.0, args=None):
 
 
 def input_power(system, q, qd, t=0.0, args=None):
-    """Power delivered by the external generalized forces, ``q̇·Q_ext``."""
-    if system.forces is None:
-        return jnp.zeros((), q.dtype)
+    """Power delivered by the external generalized forces and the actuation, ``q̇·(Q_ext + Q_u)``."""
     t = as_time(t, q)
-    return jnp.dot(qd, jnp.asarray(system.forces(q, qd, t=t, args=args), dtype=q.dtype))
+    power = jnp.zeros((), q.dtype)
+    if system.forces is not None:
+        power = power + jnp.dot(qd, jnp.asarray(system.forces(q, qd, t=t, args=args), dtype=q.dtype))
+    if system.actuation is not None:
+        power = power + jnp.dot(qd, actuation_forces(system, q, qd, t, args))
+    return power

@@ -1,16 +1,22 @@
 r"""Linearization about an equilibrium or a steady motion; normal modes; stability.
 
 **State space.** With ``y = (q, q̇)`` the equations of motion are ``ẏ = X(y, u) = (q̇, q̈(q, q̇, u))``
-(``q̈`` from the constrained KKT solve, sign convention ``M q̈ = F + Jᵀλ + Aᵀμ``). Their
-linearization about ``y*`` is ``δẏ = A δy + B δu`` with ``A = ∂X/∂y`` (2n × 2n, by ``jax.jacfwd``)
-and ``B = ∂X/∂u`` for an input ``u`` read from ``args``.
+(``q̈`` from the constrained KKT solve, sign convention ``M q̈ = F + Q_u(q, q̇, u, t) + Jᵀλ + Aᵀμ``).
+Their linearization about ``(y*, u₀)`` is ``δẏ = A δy + B δu`` with ``A = ∂X/∂y`` (2n × 2n, by
+``jax.jacfwd``, the input held at ``u₀``: the open loop) and ``B = ∂X/∂u`` (2n × k): for a system
+with an ``actuation`` ``Q_u``, ``B = (0, M_c⁻¹ ∂Q_u/∂u)`` with ``M_c⁻¹`` the constrained inverse
+of the KKT solve; or, with ``inputs=``, the derivative with respect to a value selected in
+``args``. ``u₀`` is ``u=`` if given, else the system's control law at ``(y*, t)``. A control law
+``u = κ(y, t)`` also gives the feedback matrix ``F = ∂κ/∂y`` (k × 2n) and the closed loop
+``δẏ = (A + B F) δy``: an LQR gain ``u = −K y`` has ``F = −K``.
 
 **Constraints.** The motion stays on the manifold ``C(y) = (f, ḟ, g) = 0`` (holonomic position
 and velocity level, velocity constraints). Its tangent space at ``y*`` is ``T = null(∂C/∂y)``, of
 dimension ``d = 2n − 2m_h − m_v``; the exact constrained flow leaves the manifold invariant, so
 ``A`` maps ``T`` into itself and the motion near ``y*`` is ``δẏ = A|_T δy``. jaxlag forms a basis
 ``E`` (2n × d) of ``T`` and the reduced matrices ``A_T = E⁺ A E``, ``B_T = E⁺ B`` (``E⁺`` the
-left inverse). Directions off the manifold (``δf ≠ 0``) carry only the spurious zero
+left inverse), ``F_T = F E``. ``B`` lies in ``T`` exactly (the input changes ``q̈`` only, and
+within ``J δq̈ = 0``), so ``E B_T = B``. Directions off the manifold (``δf ≠ 0``) carry only the spurious zero
 eigenvalues of the index-1 equations and are removed. ``E`` is the orthonormal null-space basis
 of an SVD, carried along by the projector ``P = I − Cᵀ(CCᵀ)⁻¹C`` so that its derivative exists:
 eigenvalues, frequencies and their gradients do not depend on which basis is chosen.
@@ -53,7 +59,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Complex, Float
+from jaxtyping import Array, ArrayLike, Bool, Complex, Float
 
 from .. import _compile as compilation
 from .._custom_types import Args, Coordinates, RealScalarLike, Scalar, Vector, Velocities
@@ -62,9 +68,8 @@ from .._mechanics import kkt as _kkt
 from .._mechanics import lagrangian as _mechanics
 from .._misc import is_concrete
 from .._tolerances import CONSTRAINT_RCOND
-from .._conventions import as_float_state
-from .._conventions import as_array_leaves
-from .._system import System
+from .._conventions import UserFunction, as_array_leaves, as_float_state
+from .._system import System, check_input_shape
 
 __all__ = ["Linearization", "NormalModes", "linearize", "normal_modes", "tangent_basis"]
 
@@ -122,16 +127,19 @@ def _spectrum_tol(matrix, tolerance):
 
 
 class Linearization(eqx.Module):
-    r"""``δẏ = A δy + B δu`` about ``(q, q̇)`` at time ``t``, ``y = (q, q̇)``.
+    r"""``δẏ = A δy + B δu`` about ``(q, q̇)`` and the input ``u₀`` at time ``t``, ``y = (q, q̇)``.
 
-    - ``state_matrix`` ``A`` (2n × 2n) and ``input_matrix`` ``B`` (2n × k, or ``None``) in the
-      full coordinates;
+    - ``state_matrix`` ``A`` (2n × 2n, the open loop: ``u`` held at ``u₀``) and ``input_matrix``
+      ``B`` (2n × k, or ``None``) in the full coordinates;
     - ``basis`` ``E`` (2n × d) of the constraint manifold's tangent space (the identity for an
       unconstrained system);
     - ``reduced_state_matrix`` ``A_T`` (d × d), ``reduced_input_matrix`` ``B_T`` (d × k): the
-      same dynamics in the coordinates ``δy = E z`` of the tangent space.
+      same dynamics in the coordinates ``δy = E z`` of the tangent space;
+    - ``input`` ``u₀`` (scalar or (k,), or ``None`` without actuation) and ``feedback_matrix``
+      ``F = ∂κ/∂y`` (k × 2n) of the system's control law ``u = κ(y, t)`` (``None`` without one).
 
-    Spectral quantities use ``A_T``; see the module docstring for the stability verdict.
+    Spectral quantities use ``A_T`` (the open loop); ``closed_loop_eigenvalues`` those of
+    ``A_T + B_T F E``. See the module docstring for the stability verdict.
     """
 
     q: Vector
@@ -142,12 +150,44 @@ class Linearization(eqx.Module):
     basis: Float[Array, "2*n d"]
     reduced_state_matrix: Float[Array, "d d"]
     reduced_input_matrix: Float[Array, "d k"] | None
+    input: Float[Array, " *k"] | None = None
+    feedback_matrix: Float[Array, "k 2*n"] | None = None
 
     @property
     def eigenvalues(self) -> Complex[Array, " d"]:
         """Eigenvalues of ``A_T`` (complex), ordered by imaginary part, then real part."""
-        values = jnp.linalg.eigvals(self.reduced_state_matrix)
-        return values[jnp.lexsort((jnp.real(values), jnp.imag(values)))]
+        return _ordered_eigenvalues(self.reduced_state_matrix)
+
+    @property
+    def closed_loop_matrix(self) -> Float[Array, "2*n 2*n"]:
+        """``A + B F``: the state matrix with the control law's feedback ``δu = F δy``."""
+        return self.state_matrix + self._feedback_input() @ self._feedback()
+
+    @property
+    def reduced_closed_loop_matrix(self) -> Float[Array, "d d"]:
+        """``A_T + B_T F E``: the closed loop on the tangent space of the constraint manifold."""
+        reduced_input = self.reduced_input_matrix
+        if reduced_input is None:
+            raise ValueError(_NO_INPUT)
+        return self.reduced_state_matrix + reduced_input @ (self._feedback() @ self.basis)
+
+    @property
+    def closed_loop_eigenvalues(self) -> Complex[Array, " d"]:
+        """Eigenvalues of ``A_T + B_T F E`` (complex), ordered as :attr:`eigenvalues`."""
+        return _ordered_eigenvalues(self.reduced_closed_loop_matrix)
+
+    def _feedback(self) -> Float[Array, "k 2*n"]:
+        if self.feedback_matrix is None:
+            raise ValueError(
+                "No feedback matrix: the system has no control law (give jl.System(..., "
+                "control=law) or system.with_control(law) before linearizing)."
+            )
+        return self.feedback_matrix
+
+    def _feedback_input(self) -> Float[Array, "2*n k"]:
+        if self.input_matrix is None:
+            raise ValueError(_NO_INPUT)
+        return self.input_matrix
 
     def modes(self) -> tuple[Complex[Array, " d"], Complex[Array, "2*n d"]]:
         """``(eigenvalues, shapes)``: shapes (2n × d, complex) are eigenvectors in full ``(δq, δq̇)``."""
@@ -189,6 +229,14 @@ class Linearization(eqx.Module):
         return "stable"
 
 
+_NO_INPUT = "No input matrix: the system has no actuation and no `inputs=` was given."
+
+
+def _ordered_eigenvalues(matrix):
+    values = jnp.linalg.eigvals(matrix)
+    return values[jnp.lexsort((jnp.real(values), jnp.imag(values)))]
+
+
 def _input_derivative(field, args, inputs):
     u0 = jnp.asarray(inputs(args))
     shape = u0.shape
@@ -214,6 +262,7 @@ def linearize(
     t: RealScalarLike = 0.0,
     args: Args = None,
     *,
+    u: Float[ArrayLike, " *k"] | None = None,
     inputs: Callable | None = None,
 ) -> Linearization:
     r"""Linearize the equations of motion about ``(q, q̇)`` at time ``t``.
@@ -221,8 +270,16 @@ def linearize(
     - ``q``, ``qd``: the state (``qd`` defaults to rest); typically from
       :func:`jaxlag.analysis.equilibrium`. Any state may be given: about a non-equilibrium
       state the matrices describe the variational equation at that instant.
-    - ``inputs``: optional ``where``-function selecting the input inside ``args`` (as in
-      ``eqx.tree_at``), e.g. ``lambda a: a["force"]``; then ``input_matrix`` is ``∂ẏ/∂u``.
+    - ``u``: for a system with an ``actuation`` ``Q_u(q, q̇, u, t)``, the input ``u₀`` (scalar or
+      (k,)) about which to linearize; by default the system's control law at the state,
+      ``u₀ = κ(q, q̇, t)``. ``state_matrix`` is the open loop (``u`` held at ``u₀``),
+      ``input_matrix`` ``B = ∂(q̇, q̈)/∂u`` (2n × k, k = 1 for a scalar input) and, when the
+      system has a control law, ``feedback_matrix`` ``F = ∂κ/∂(q, q̇)`` gives the closed loop
+      (``closed_loop_eigenvalues``).
+    - ``inputs``: optional ``where``-function selecting an input inside ``args`` instead (as in
+      ``eqx.tree_at``), e.g. ``lambda a: a["force"]``; then ``input_matrix`` is ``∂ẏ/∂a`` for
+      that value (through the control law evaluated at the state, if it reads it) and there is no
+      ``feedback_matrix``.
 
     Returns a :class:`Linearization`. Works under ``jit``, ``vmap`` and ``grad`` (eigenvalues
     and frequencies are differentiable; nonsymmetric eigen-decompositions run on the CPU).
@@ -232,7 +289,24 @@ def linearize(
     args = as_array_leaves(args, q.dtype)  # new parameter values must not recompile
     system.check(q, qd, t, args)
     t = jnp.asarray(t, q.dtype)
-    lin, rank_deficient = _linearize(system, q, qd, t, args, inputs)
+    if u is not None:
+        if system.actuation is None:
+            raise ValueError(
+                "linearize: u= was given, but the system has no `actuation` Q_u(q, qd, u) through "
+                "which an input acts; give jl.System(..., actuation=...) (or select an input in "
+                "args with inputs=)."
+            )
+        u = jnp.asarray(u)
+        if not jnp.issubdtype(u.dtype, jnp.floating):
+            u = u.astype(q.dtype)
+        check_input_shape(system, q, qd, u, t, args, "linearize's u=")
+        u = u.astype(q.dtype)
+    elif system.actuation is not None and system.control is None:
+        raise ValueError(
+            "linearize: the system has an actuation Q_u(q, qd, u) but no control law; give the "
+            "input to linearize about, e.g. u=0.0 (or u=jnp.zeros(k)), or a control law."
+        )
+    lin, rank_deficient = _linearize(system, q, qd, t, args, inputs, u)
     if is_concrete((q, qd, t, args)):
         if bool(rank_deficient):
             raise _raise_rank("state")
@@ -245,19 +319,48 @@ def linearize(
     return eqx.tree_at(lambda x: x.state_matrix, lin, checked)
 
 
-@compilation.filter_jit
-def _linearize(system, q, qd, t, args, inputs):
-    n = q.shape[0]
+class _HeldInput(eqx.Module):
+    """A control law that returns a fixed input (its value is a leaf: differentiable)."""
 
-    def field(y, a):
-        x, v = y[:n], y[n:]
-        return jnp.concatenate([v, _accelerations(system, x, v, t, a)])
+    value: Array
+
+    def __call__(self, q, qd):
+        return self.value
+
+
+def _holding(system, u):
+    """``system`` with its input held at ``u`` (the open loop)."""
+    held = UserFunction(_HeldInput(u), (), "held input")
+    return eqx.tree_at(lambda s: s.control, system, held, is_leaf=lambda x: x is None)
+
+
+@compilation.filter_jit
+def _linearize(system, q, qd, t, args, inputs, u):
+    n = q.shape[0]
+    actuated = system.actuation is not None
+
+    def law(z, a):
+        return _mechanics.control_input(system, z[:n], z[n:], t, a)
+
+    def field(z, a, w):
+        x, v = z[:n], z[n:]
+        held = _holding(system, w) if actuated else system
+        return jnp.concatenate([v, _accelerations(held, x, v, t, a)])
 
     y = jnp.concatenate([q, qd])
-    state_matrix = jax.jacfwd(field)(y, args)
-    input_matrix = None
+    u0 = (law(y, args) if u is None else u) if actuated else None
+    state_matrix = jax.jacfwd(field)(y, args, u0)
+    input_matrix, feedback_matrix = None, None
     if inputs is not None:
-        input_matrix = _input_derivative(lambda a: field(y, a), args, inputs)
+        if actuated and u is None:
+            input_matrix = _input_derivative(lambda a: field(y, a, law(y, a)), args, inputs)
+        else:
+            input_matrix = _input_derivative(lambda a: field(y, a, u0), args, inputs)
+    elif u0 is not None:
+        shape = u0.shape
+        input_matrix = jax.jacfwd(lambda w: field(y, args, w.reshape(shape)))(jnp.atleast_1d(u0))
+        if system.control is not None:
+            feedback_matrix = jax.jacfwd(lambda z: jnp.atleast_1d(law(z, args)))(y)
     constraint_jacobian = jax.jacfwd(lambda z: _state_constraints(system, z[:n], z[n:], t, args))(y)
     rank_deficient = _constraint_rank_check(constraint_jacobian)
     basis = tangent_basis(constraint_jacobian)
@@ -265,7 +368,9 @@ def _linearize(system, q, qd, t, args, inputs):
     reduced = left @ state_matrix @ basis
     reduced_input = None if input_matrix is None else left @ input_matrix
     return (
-        Linearization(q, qd, t, state_matrix, input_matrix, basis, reduced, reduced_input),
+        Linearization(
+            q, qd, t, state_matrix, input_matrix, basis, reduced, reduced_input, u0, feedback_matrix
+        ),
         rank_deficient,
     )
 

@@ -186,17 +186,18 @@ def cart_pole(control: Callable | None = None) -> System:
 
         L = ½ (M + m) ẋ² + ½ m l ẋ θ̇ cos θ + ⅙ m l² θ̇² − ½ m g l cos θ.
 
-    The input is a horizontal force ``u`` on the cart (generalized force ``(u, 0)``):
-    ``control(q, qd, [t], [args])`` if given, else the parameter ``force`` (a constant; select it
-    for a linearization's input matrix with ``inputs=lambda a: a["force"]``). Extra keys in
-    ``args`` are allowed for the keys that ``control`` reads (controller gains); any other key
-    is refused, with the closest parameter name. Parameters: ``M``, ``m``, ``l``, ``g``,
+    The input is a horizontal force ``u`` (a scalar) on the cart, the system's ``actuation``
+    ``Q_u = (u, 0)``. Its control law is ``control(q, qd, [t], [args])`` if given (a feedback
+    law, a time table in ``args``, or both), else the parameter ``force`` (a constant);
+    :func:`jaxlag.analysis.linearize` gives ``B = ∂(q̇, q̈)/∂u`` and, with a law, the feedback
+    ``∂u/∂(q, q̇)``. ``cart_pole().with_control(law)`` is the same model with another law.
+    Extra keys in ``args`` are allowed for the keys that ``control`` reads (controller gains,
+    tables); any other key is refused, with the closest parameter name (not after
+    ``with_control``, whose law is not watched). Parameters: ``M``, ``m``, ``l``, ``g``,
     ``force``.
     """
 
     def p_of(args):
-        if control is None and isinstance(args, Mapping):
-            check_keys(cart_pole, args)
         return parameters(cart_pole, args)
 
     def cart(q):
@@ -213,18 +214,26 @@ def cart_pole(control: Callable | None = None) -> System:
     lagrangian = lagrangian_from_positions(
         cart, lambda a: p_of(a)["M"], gravity=lambda a: p_of(a)["g"], bodies=[pole]
     )
-    user = wrap_state_function(control, "cart-pole control") if control is not None else None
 
-    def forces(q, qd, t, args):
-        if user is None:
-            u = jnp.asarray(p_of(args)["force"], q.dtype)
-        else:
-            u = jnp.asarray(_call_recording_reads(user, q, qd, t, args), q.dtype)
-            if u.shape != ():
-                raise ValueError(f"The cart-pole control must return a scalar force; got shape {u.shape}.")
-        return jnp.stack([u, jnp.zeros((), q.dtype)])
+    def actuation(q, qd, u):  # Q_u = (u, 0): a horizontal force on the cart
+        return jnp.stack([jnp.reshape(u, ()), jnp.zeros((), q.dtype)])
 
-    return System(lagrangian, forces=forces)
+    def constant_force(q, qd, args):  # the parameter `force`; every key of args is checked
+        if isinstance(args, Mapping):
+            check_keys(cart_pole, args)
+        return jnp.asarray(p_of(args)["force"], q.dtype)
+
+    if control is None:
+        return System(lagrangian, actuation=actuation, control=constant_force)
+    user = wrap_state_function(control, "cart-pole control")
+
+    def law(q, qd, t, args):  # the user's control; keys it does not read are still checked
+        u = jnp.asarray(_call_recording_reads(user, q, qd, t, args), q.dtype)
+        if u.shape != ():
+            raise ValueError(f"The cart-pole control must return a scalar force; got shape {u.shape}.")
+        return u
+
+    return System(lagrangian, actuation=actuation, control=law)
 
 
 def _call_recording_reads(user, q, qd, t, args):
