@@ -14,11 +14,11 @@ import equinox as eqx
 import pytest
 
 import jaxlag as jl
-from jaxlag import _custom_types, analysis, contact, coordinates, inputs, loads, rotations, systems
+from jaxlag import _custom_types, analysis, contact, coordinates, inputs, learned, loads, rotations, systems
 
 # jaxlag.plot is not here: its annotations name matplotlib types (Axes, Figure) that exist only
 # under TYPE_CHECKING, since matplotlib is optional; basedpyright checks them instead.
-NAMESPACES = (analysis, contact, coordinates, inputs, loads, rotations, systems)
+NAMESPACES = (analysis, contact, coordinates, inputs, learned, loads, rotations, systems)
 
 # Annotations that contain `Any` (at any depth) on purpose: (owner, field or parameter) -> why.
 # Fields and parameters holding "any pytree" of parameters are annotated `Args` (jaxtyping's
@@ -28,6 +28,8 @@ ALLOWED_ANY: dict[tuple[str, str], str] = {
     ("Trajectory", "stats"): _STATS,
     ("Trajectory.from_states", "stats"): _STATS,
     ("Checks.tolerance", "dtype"): "jax.typing.DTypeLike, whose union includes type[Any]",
+    ("AbstractLagrangian.system", "kwargs"): "keyword arguments passed through to jl.System",
+    ("ConstrainedLagrangian.system", "kwargs"): "keyword arguments passed through to jl.System",
 }
 
 

@@ -14,6 +14,7 @@ from . import (
     coordinates as coordinates,
     experimental as experimental,
     inputs as inputs,
+    learned as learned,
     loads as loads,
     plot as plot,
     rotations as rotations,

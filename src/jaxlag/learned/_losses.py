@@ -1,0 +1,219 @@
+r"""Learned accelerations without checks, and the losses of learned Lagrangians.
+
+Every loss returns a :class:`LossValue`: the mean over the members whose prediction is finite,
+and the number of members that were not (an indefinite learned ``M = ∂²L/∂q̇²``, a rollout that
+blew up). Failed members are excluded from the mean and from its gradient, never averaged in as
+NaN: one bad state does not poison the batch.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Union
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
+
+from .._batch.batch import simulate_batch
+from .._batch.ensemble import RK4
+from .._checks import Checks
+from .._custom_types import Args, RealScalarLike
+from .._mechanics import kkt as _kkt
+from .._mechanics import lagrangian as _lagrangian
+from .._mechanics.mass_solve import RobustSolve
+from .._system import System
+from ._data import StateData, TrajectoryData, segments
+from ._models import AbstractLagrangian
+
+Model = Union[AbstractLagrangian, System, Callable]
+
+
+def as_system(model: Model) -> System:
+    """``model.system()`` for a learned model, the system itself, or ``jl.System(L)`` in learned
+    mode (``mass_solve=jl.RobustSolve()``) for a function."""
+    if isinstance(model, System):
+        return model
+    if isinstance(model, AbstractLagrangian):
+        return model.system()
+    return System(model, mass_solve=RobustSolve())
+
+
+def accelerations(
+    model: Model,
+    q: Float[Array, " n"],
+    qd: Float[Array, " n"],
+    t: RealScalarLike = 0.0,
+    args: Args = None,
+) -> Float[Array, " n"]:
+    r"""``q̈`` of ``M q̈ = F + Jᵀλ``, ``J q̈ = −γ`` for a learned model: NaN where it cannot be solved.
+
+    The check-free path for training: no host callbacks and no eigen-decomposition, so it runs
+    under ``jit``, ``vmap`` and ``grad`` and exports. The KKT system is solved with
+    :class:`~jaxlag.RobustSolve` (whatever ``mass_solve`` the model's system has): Cholesky of
+    ``M = ∂²L/∂q̇²`` and of the Schur complement ``J M⁻¹ Jᵀ``, and a state whose pivots fall to
+    ``rtol · max_i |M_ii|`` or below (``M`` indefinite or singular) gives NaN for that state
+    alone, with a gradient of exactly zero (never NaN).
+    ``model``: an :class:`AbstractLagrangian`, a :class:`~jaxlag.System`, or a function ``L``.
+    """
+    system = as_system(model)
+    if not isinstance(system.mass_solve, RobustSolve):
+        system = eqx.tree_at(lambda s: s.mass_solve, system, RobustSolve())
+    q, qd = jnp.asarray(q), jnp.asarray(qd)
+    t = _lagrangian.as_time(t, q)
+    return _kkt.accelerations_and_multipliers(system, q, qd, t, args)[0]
+
+
+class LossValue(eqx.Module):
+    """A loss: ``value``, the mean over finite members, and ``failed``, the members left out."""
+
+    value: Float[Array, ""]
+    failed: Int[Array, ""]
+
+
+def masked_mean(errors: Float[Array, " batch"]) -> LossValue:
+    """Mean of the finite ``errors`` (``inf`` if none is), and how many were not finite."""
+    ok = jnp.isfinite(errors)
+    count = jnp.sum(ok)
+    total = jnp.sum(jnp.where(ok, errors, 0.0))
+    value = jnp.where(count > 0, total / jnp.maximum(count, 1).astype(errors.dtype), jnp.inf)
+    return LossValue(value, (errors.shape[0] - count).astype(jnp.int32))
+
+
+def _scaled(error: Array, scale: Array | None) -> Array:
+    return error if scale is None else error / jnp.broadcast_to(scale, error.shape)
+
+
+class AbstractLoss(eqx.Module):
+    """A loss ``loss(model, data) -> LossValue`` (a Module: its options are fields)."""
+
+    def __call__(self, model: Model, data: StateData | TrajectoryData) -> LossValue:
+        raise NotImplementedError
+
+
+class AccelerationLoss(AbstractLoss):
+    r"""Mean over states of ``Σᵢ ((q̈ᵢ − q̈ᵢᵈᵃᵗᵃ) / scaleᵢ)²`` on :class:`StateData`.
+
+    ``q̈`` from :func:`accelerations` (``M q̈ = F + Jᵀλ``); the data's known generalized forces
+    ``StateData.forces`` (motor torques), if given, are part of ``F``. ``scale`` (n,): e.g. the standard
+    deviation of the data's accelerations per coordinate, so that every coordinate weighs alike
+    (``None``: 1). States whose ``q̈`` is not finite are counted in ``failed`` and left out.
+    """
+
+    scale: Float[Array, " n"] | None = None
+
+    def __call__(self, model: Model, data: StateData) -> LossValue:  # pyright: ignore[reportIncompatibleMethodOverride]
+        if data.forces is None:
+            system = as_system(model)
+            predicted = jax.vmap(lambda q, qd: accelerations(system, q, qd))(data.q, data.qd)
+        else:
+            system = _with_known_forces(model)
+            predicted = jax.vmap(lambda q, qd, f: accelerations(system, q, qd, args=f))(
+                data.q, data.qd, data.forces
+            )
+        errors = jnp.sum(_scaled(predicted - data.qdd, self.scale) ** 2, axis=-1)
+        return masked_mean(errors)
+
+
+def _known_forces(q, qd, args):
+    return args
+
+
+def _with_known_forces(model: Model) -> System:
+    """The model's system with the sample's known generalized forces ``Q`` (passed as ``args``)."""
+    if isinstance(model, AbstractLagrangian):
+        return model.system(forces=_known_forces)
+    if isinstance(model, System):
+        raise TypeError(
+            "StateData.forces (known generalized forces per sample) needs the model itself, not a "
+            "jl.System: the loss adds the forces to the model's system."
+        )
+    return System(model, forces=_known_forces, mass_solve=RobustSolve())
+
+
+class RolloutLoss(AbstractLoss):
+    r"""Mean over trajectories and times of ``Σᵢ ((qᵢ(t) − qᵢᵈᵃᵗᵃ(t)) / scaleᵢ)²``.
+
+    Each member of :class:`TrajectoryData` is simulated with :func:`~jaxlag.simulate_batch` from
+    its first observed state; the models are autonomous, so all members share the first member's
+    sample times relative to its start (sample every member alike). ``solver`` (default
+    ``jl.RK4()``) takes constant steps ``dt0`` (``None``: the first sample spacing of the data
+    divided by ``substeps``; ``max_steps`` bounds the steps of an explicit ``dt0``).
+    ``velocities=True`` adds the same error on ``q̇``. A member whose rollout is not finite
+    (``traj.failure.code != 0``) is counted in ``failed`` and left out of the value; its gradient
+    can still be NaN (through the solver's backward pass, seen with an LNN whose rollout failed),
+    so train with ``optax.apply_if_finite(optimizer, n)`` to skip such steps. Constrained models are
+    projected back onto ``f = 0`` after every step (``jl.Projection()``, ``simulate``'s default).
+    """
+
+    solver: diffrax.AbstractSolver = RK4()
+    dt0: float | None = None
+    substeps: int = eqx.field(static=True, default=1)
+    max_steps: int = eqx.field(static=True, default=4096)
+    scale: Float[Array, " n"] | None = None
+    velocities: bool = eqx.field(static=True, default=False)
+
+    def rollout(self, model: Model, data: TrajectoryData) -> tuple[Array, Array, Array]:
+        """``(q, q̇, ok)``: the model's rollouts, shaped like ``data.q``, and which members finished
+        with finite states (``traj.failure.code == 0``)."""
+        system = as_system(model)
+        dt0 = self.dt0
+        # Reverse mode through the solve needs a bound on the steps (diffrax's checkpoints).
+        max_steps = self.max_steps
+        if dt0 is None:
+            dt0 = (data.ts[0, 1] - data.ts[0, 0]) / self.substeps
+            max_steps = (data.ts.shape[1] - 1) * self.substeps + 4
+        # Learned Lagrangians are autonomous: every member runs on the first member's times,
+        # relative to its start (simulate_batch shares its save times across the batch).
+        traj = simulate_batch(
+            system,
+            data.q[:, 0],
+            data.qd[:, 0],
+            data.ts[0] - data.ts[0, 0],
+            solver=self.solver,
+            stepsize_controller=diffrax.ConstantStepSize(),
+            dt0=dt0,
+            max_steps=max_steps,
+            throw=False,
+            checks=Checks(initial_state=False, times=False),
+            adjoint=diffrax.RecursiveCheckpointAdjoint(),
+        )
+        ok = jnp.all(jnp.isfinite(traj.q), axis=(1, 2)) & jnp.all(jnp.isfinite(traj.qd), axis=(1, 2))
+        if traj.failure is not None:
+            ok = ok & (traj.failure.code == 0)
+        return traj.q, traj.qd, ok
+
+    def __call__(self, model: Model, data: TrajectoryData) -> LossValue:  # pyright: ignore[reportIncompatibleMethodOverride]
+        q, qd, ok = self.rollout(model, data)
+        # Mask a failed member's states before any arithmetic (its backward pass then sees zeros).
+        q = jnp.where(ok[:, None, None], q, data.q)
+        qd = jnp.where(ok[:, None, None], qd, data.qd)
+        errors = jnp.sum(_scaled(q - data.q, self.scale) ** 2, axis=-1)
+        if self.velocities:
+            errors = errors + jnp.sum(_scaled(qd - data.qd, self.scale) ** 2, axis=-1)
+        return masked_mean(jnp.where(ok, jnp.mean(errors, axis=1), jnp.nan))
+
+
+class MultipleShootingLoss(AbstractLoss):
+    r"""A :class:`RolloutLoss` on short segments of the data, each started from its observed state.
+
+    The trajectories are cut into segments of ``length`` samples (:func:`segments`); every
+    segment is simulated from its own first observed ``(q, q̇)``. Short segments keep the loss
+    smooth in the weights where one long rollout of a chaotic system is not.
+    """
+
+    length: int = eqx.field(static=True, default=5)
+    rollout: RolloutLoss = RolloutLoss()
+
+    def __call__(self, model: Model, data: TrajectoryData) -> LossValue:  # pyright: ignore[reportIncompatibleMethodOverride]
+        return self.rollout(model, segments(data, self.length))
+
+
+def state_data(model: Model, data: TrajectoryData, args: Args = None) -> StateData:
+    """The states of ``data`` with the accelerations of a known ``model`` (e.g. a ready system)."""
+    n = data.q.shape[-1]
+    q, qd = data.q.reshape(-1, n), data.qd.reshape(-1, n)
+    system = as_system(model)
+    qdd = jax.vmap(lambda a, b: accelerations(system, a, b, args=args))(q, qd)
+    return StateData(q, qd, qdd)
