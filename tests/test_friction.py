@@ -219,3 +219,13 @@ def test_coulomb_options_and_errors():
     system = jl.System(lagrangian, surface, unilateral=0, friction=jl.Coulomb(3, along, 0.1))
     with pytest.raises(ValueError, match="contact rows"):
         jl.simulate(system, jnp.zeros(2), jnp.zeros(2), TS, args={"theta": 0.0, "c": 0.0, "A": 0.0})
+
+
+def test_friction_needs_a_unilateral_contact_row_and_no_least_squares():
+    # On a bilateral row λ_N may change sign, and μλ_N would be no bound (a "friction" pushing
+    # along the motion): refused where the system is built.
+    bilateral = jl.System(lagrangian, surface, friction=jl.Coulomb(0, along, 0.1))
+    with pytest.raises(ValueError, match=r"contact rows \[0\], which are not unilateral"):
+        jl.simulate(bilateral, jnp.zeros(2), jnp.zeros(2), TS, args={"theta": 0.0, "c": 0.0, "A": 0.0})
+    with pytest.raises(ValueError, match="least_squares=True is not supported"):
+        jl.System(lagrangian, surface, unilateral=0, least_squares=True, friction=jl.Coulomb(0, along, 0.1))

@@ -289,3 +289,8 @@ def test_reset_off_the_constraint_manifold_is_projected():
     np.testing.assert_allclose(q, [math.cos(0.3), math.sin(0.3)], atol=1e-9)  # radial move undone
     np.testing.assert_allclose(np.hypot(*qd), 1.0, atol=1e-9)  # tangential speed kept
     np.testing.assert_allclose(traj.q[-1], [math.cos(1.0), math.sin(1.0)], atol=1e-8)
+
+
+def test_unilateral_true_is_not_an_index():
+    with pytest.raises(TypeError, match="give the indices of the one-sided holonomic rows"):
+        jl.System(lambda q, qd: 0.5 * qd[0] ** 2, lambda q: q, unilateral=True)

@@ -138,6 +138,13 @@ class System(eqx.Module):
         self.friction = as_friction(friction)
         if self.friction and holonomic is None:
             raise ValueError("friction acts on contact rows of the holonomic constraints; none was given.")
+        if self.friction:
+            if self.least_squares:
+                raise ValueError(
+                    "friction with least_squares=True is not supported: the frictional KKT "
+                    "matrix is not symmetric, and redundant rows have no minimum-norm "
+                    "multipliers there. Remove the redundant constraints."
+                )
 
     def with_control(self, control: Callable | None) -> System:
         """A copy of this system with the control law ``u = control(q, qd, [t], [args])``
@@ -213,6 +220,14 @@ class System(eqx.Module):
                 raise ValueError(
                     f"friction names contact rows {bad}, but the holonomic function returns only "
                     f"{out[0]} entries."
+                )
+            bilateral = [e.contact for e in self.friction if e.contact not in self.unilateral]
+            if bilateral:
+                raise ValueError(
+                    f"friction acts on contact rows {bilateral}, which are not unilateral: the "
+                    "friction bound μλ_N needs a normal force λ_N ≥ 0, which only a unilateral "
+                    "row keeps (it releases where λ_N would pull). Pass unilateral=... with "
+                    "those rows."
                 )
             for e in self.friction:
                 tau = jax.eval_shape(lambda x, e=e: e.tangent(x, t=t, args=args), q).shape

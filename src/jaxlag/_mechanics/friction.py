@@ -52,8 +52,9 @@ class Coulomb(eqx.Module):
     ``System(..., friction=jl.Coulomb(contact, tangent, mu))``.
 
     - ``contact``: the index of the holonomic row that is the contact's normal, ``f_c(q, t)``
-      (unilateral, or bilateral for a body that never leaves), written so that its multiplier
-      ``λ_N = λ_c ≥ 0`` pushes (``f_c ≥ 0`` outside the body).
+      (a unilateral row, ``System(..., unilateral=...)``), written so that its multiplier
+      ``λ_N = λ_c ≥ 0`` pushes (``f_c ≥ 0`` outside the body). A bilateral row is refused: its
+      multiplier may change sign, and ``μ λ_N`` is then no friction bound.
     - ``tangent``: ``τ(q, [t], [args]) -> scalar``, a tangential coordinate of the contact point
       whose time derivative is the slip velocity ``v_t = τ̇ = T q̇ + ∂τ/∂t`` (``T = ∂τ/∂q``);
       e.g. the distance along a ramp ``cos θ x + sin θ y``, or ``x − R φ`` for a rolling disc.
@@ -194,6 +195,10 @@ def solve_with_modes(system, q, qd, t, args, baumgarte=None, active=None, modes=
     free, minv_gt = solved[:, 0], solved[:, 1:]
     schur = g @ minv_gt + jnp.diag(1.0 - weight)
     multipliers = jnp.linalg.solve(schur, c - g @ free)
+    # A singular frictional KKT matrix (redundant contact rows, or a slip system with no
+    # solution at a large μ) makes the solve non-finite: the state fails, as a failed M does.
+    ok = ok & jnp.all(jnp.isfinite(multipliers))
+    multipliers = jnp.where(jnp.isfinite(multipliers), multipliers, 0.0)
     qdd = free + minv_gt @ multipliers
     lam = multipliers[:m_h]
     lam_t = jnp.where(stick > 0, multipliers[m:], -slip * (to_normal @ lam))

@@ -136,6 +136,11 @@ def as_unilateral(unilateral: int | Sequence[int] | Unilateral) -> Unilateral:
     """``System``'s ``unilateral=``: a :class:`Unilateral`, or indices (plastic)."""
     if isinstance(unilateral, Unilateral):
         return unilateral
+    if isinstance(unilateral, (bool, np.bool_)):
+        raise TypeError(
+            f"unilateral={unilateral!r}: give the indices of the one-sided holonomic rows "
+            "(an int or a sequence of ints), or jl.Unilateral(indices, restitution=e)."
+        )
     if isinstance(unilateral, (int, np.integer)):
         return Unilateral((int(unilateral),))
     return Unilateral(tuple(sorted({int(i) for i in unilateral})))  # repeated indices: once
