@@ -123,8 +123,8 @@ def optimizers(steps):
     if steps not in _OPTIMIZERS:
         schedule = optax.warmup_cosine_decay_schedule(0.0, 3e-3, max(steps // 20, 1), steps, 1e-5)
         first = optax.chain(optax.clip_by_global_norm(10.0), optax.adam(schedule))
-        # A rollout that fails can still leak a NaN into the gradient through the solver's backward
-        # pass (seen with the LNN): skip such steps instead of poisoning the weights.
+        # The rollout loss leaves failed members out of the gradient; a minibatch in which every
+        # member fails has none: skip such a step instead of poisoning the weights.
         second = optax.apply_if_finite(optax.chain(optax.clip_by_global_norm(1.0), optax.adam(3e-4)), 50)
         _OPTIMIZERS[steps] = (first, second)
     return _OPTIMIZERS[steps]

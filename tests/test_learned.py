@@ -127,6 +127,51 @@ def test_rollout_loss_gradient_matches_finite_differences():
         np.testing.assert_allclose(grad[i], fd, rtol=1e-6, atol=1e-9)
 
 
+class _SofteningSpring(jll.AbstractLagrangian):
+    """``L = ½(1 − a q²) q̇² − ½ k q²``: its mass ``1 − a q²`` turns negative beyond ``|q| = 1/√a``."""
+
+    a: jax.Array
+    k: jax.Array
+
+    def __call__(self, q, qd):
+        return 0.5 * (1.0 - self.a * q[0] ** 2) * qd[0] ** 2 - 0.5 * self.k * q[0] ** 2
+
+
+def test_member_failing_mid_rollout_leaves_the_gradient_of_the_others():
+    # Oscillations of the unit oscillator; the model's mass 1 − 0.3q² fails past |q| = 1.83, which
+    # only the last member (q̇0 = 2.4: amplitude about 2) reaches, after a few steps. Masking its
+    # outputs alone gave a NaN gradient (0 · NaN in the backward pass of its steps after the
+    # failure); the loss must give exactly the gradient of the three members that finish.
+    ts = jnp.linspace(0.0, 3.0, 31)
+    q0 = jnp.array([[0.5], [1.0], [-1.2], [0.0]])
+    qd0 = jnp.array([[0.0], [0.5], [0.0], [2.4]])
+    truth = jl.simulate_batch(jl.System(lambda q, qd: 0.5 * qd[0] ** 2 - 0.5 * q[0] ** 2), q0, qd0, ts)
+    data = jll.TrajectoryData(jnp.broadcast_to(ts, (4, 31)), truth.q, truth.qd)
+    loss = jll.RolloutLoss()
+
+    def value(theta, data):
+        return loss(_SofteningSpring(theta[0], theta[1]), data)
+
+    grad = jax.jit(jax.value_and_grad(lambda th, d: value(th, d).value))
+    theta = jnp.array([0.3, 1.1])
+    assert int(value(theta, data).failed) == 1
+    rollout_q, _, ok = loss.rollout(_SofteningSpring(theta[0], theta[1]), data)
+    assert not bool(ok[3]) and int(jnp.sum(jnp.isfinite(rollout_q[3]))) > 3  # fails mid-way
+    loss_value, g = grad(theta, data)
+    finished = jll.TrajectoryData(data.ts[:3], data.q[:3], data.qd[:3])
+    loss_three, g_three = grad(theta, finished)
+    assert np.all(np.isfinite(g))
+    # The same discrete computation on the same three members: equal to round-off.
+    np.testing.assert_allclose(loss_value, loss_three, rtol=1e-14)
+    np.testing.assert_allclose(g, g_three, rtol=1e-12)
+    h = 1e-6
+    for i in range(2):
+        e = jnp.zeros(2).at[i].set(h)
+        fd = (grad(theta + e, data)[0] - grad(theta - e, data)[0]) / (2 * h)
+        # Central differences of an O(1) loss: truncation h²|f'''| ~ 1e-12, round-off ε/h ~ 1e-10.
+        np.testing.assert_allclose(g[i], fd, rtol=1e-7)
+
+
 def test_constrained_lnn_keeps_the_constraint():
     # Cartesian pendulum: one body in 2-D on a rod of length 1.2; untrained learned masses and
     # potential. The KKT solve gives J ẍ = −γ exactly (round-off) and the rollout, projected

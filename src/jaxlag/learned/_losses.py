@@ -141,10 +141,15 @@ class RolloutLoss(AbstractLoss):
     ``jl.RK4()``) takes constant steps ``dt0`` (``None``: the first sample spacing of the data
     divided by ``substeps``; ``max_steps`` bounds the steps of an explicit ``dt0``).
     ``velocities=True`` adds the same error on ``q̇``. A member whose rollout is not finite
-    (``traj.failure.code != 0``) is counted in ``failed`` and left out of the value; its gradient
-    can still be NaN (through the solver's backward pass, seen with an LNN whose rollout failed),
-    so train with ``optax.apply_if_finite(optimizer, n)`` to skip such steps. Constrained models are
-    projected back onto ``f = 0`` after every step (``jl.Projection()``, ``simulate``'s default).
+    (``traj.failure.code != 0``) is counted in ``failed`` and left out of the value and of the
+    gradient. Masking its outputs alone would not do: the backward pass through its steps after the
+    failure multiplies zero cotangents by non-finite Jacobians (``0 · NaN``), and the weights are
+    shared by all members. So the loss runs twice: a forward-only rollout finds the failed members,
+    and the differentiated rollout starts each of them from the initial state of the first member
+    that finished (an identical, finite copy, whose contribution is then masked). The gradient is
+    exactly that of the finished members; the price is one more forward rollout. If every member
+    fails, the value is ``inf`` and the gradient is not finite. Constrained models are projected
+    back onto ``f = 0`` after every step (``jl.Projection()``, ``simulate``'s default).
     """
 
     solver: diffrax.AbstractSolver = RK4()
@@ -154,9 +159,18 @@ class RolloutLoss(AbstractLoss):
     scale: Float[Array, " n"] | None = None
     velocities: bool = eqx.field(static=True, default=False)
 
-    def rollout(self, model: Model, data: TrajectoryData) -> tuple[Array, Array, Array]:
+    def rollout(
+        self,
+        model: Model,
+        data: TrajectoryData,
+        q0: Float[Array, "batch n"] | None = None,
+        qd0: Float[Array, "batch n"] | None = None,
+    ) -> tuple[Array, Array, Array]:
         """``(q, q̇, ok)``: the model's rollouts, shaped like ``data.q``, and which members finished
-        with finite states (``traj.failure.code == 0``)."""
+        with finite states (``traj.failure.code == 0``). They start from the first observed states
+        of ``data``, or from ``q0``, ``qd0`` where given."""
+        q0 = data.q[:, 0] if q0 is None else q0
+        qd0 = data.qd[:, 0] if qd0 is None else qd0
         system = as_system(model)
         dt0 = self.dt0
         # Reverse mode through the solve needs a bound on the steps (diffrax's checkpoints).
@@ -168,8 +182,8 @@ class RolloutLoss(AbstractLoss):
         # relative to its start (simulate_batch shares its save times across the batch).
         traj = simulate_batch(
             system,
-            data.q[:, 0],
-            data.qd[:, 0],
+            q0,
+            qd0,
             data.ts[0] - data.ts[0, 0],
             solver=self.solver,
             stepsize_controller=diffrax.ConstantStepSize(),
@@ -185,14 +199,26 @@ class RolloutLoss(AbstractLoss):
         return traj.q, traj.qd, ok
 
     def __call__(self, model: Model, data: TrajectoryData) -> LossValue:  # pyright: ignore[reportIncompatibleMethodOverride]
-        q, qd, ok = self.rollout(model, data)
-        # Mask a failed member's states before any arithmetic (its backward pass then sees zeros).
+        # Forward only: which members fail. Then the differentiated rollout, with every failed
+        # member restarted from the first finished member's initial state, so that no step of the
+        # backward pass meets a non-finite state (see the class docstring).
+        _, _, ok = jax.lax.stop_gradient(self.rollout(_without_gradient(model), data))
+        donor = jnp.argmax(ok)
+        q0 = jnp.where(ok[:, None], data.q[:, 0], data.q[donor, 0])
+        qd0 = jnp.where(ok[:, None], data.qd[:, 0], data.qd[donor, 0])
+        q, qd, _ = self.rollout(model, data, q0, qd0)
+        # Mask the copies' states before any arithmetic (their backward pass then sees zeros).
         q = jnp.where(ok[:, None, None], q, data.q)
         qd = jnp.where(ok[:, None, None], qd, data.qd)
         errors = jnp.sum(_scaled(q - data.q, self.scale) ** 2, axis=-1)
         if self.velocities:
             errors = errors + jnp.sum(_scaled(qd - data.qd, self.scale) ** 2, axis=-1)
         return masked_mean(jnp.where(ok, jnp.mean(errors, axis=1), jnp.nan))
+
+
+def _without_gradient(tree):
+    """``tree`` with ``lax.stop_gradient`` on its arrays (a model's functions pass through)."""
+    return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, tree)
 
 
 class MultipleShootingLoss(AbstractLoss):

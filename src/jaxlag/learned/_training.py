@@ -113,9 +113,9 @@ def train(
       ``min_improvement`` (relative) for ``patience`` evaluations in a row (early stopping).
     - ``progress``: show a ``tqdm`` bar (``pip install tqdm``; imported only then).
 
-    A step whose gradient is not finite (a rollout that blew up in a way the masking cannot
-    catch) would poison the weights: wrap the optimizer in ``optax.apply_if_finite(optimizer,
-    max_consecutive_errors)`` to skip such steps.
+    The losses leave failed members out of the value and the gradient; a step in which every
+    member fails has no finite gradient and would poison the weights: wrap the optimizer in
+    ``optax.apply_if_finite(optimizer, max_consecutive_errors)`` to skip such steps.
 
     The loop runs :func:`train_step` compiled once (``eqx.filter_jit``): changing ``data`` of the
     same shapes does not recompile.
