@@ -29,7 +29,9 @@ on one pinned core, compilation included (the first size of each model pays it).
 Run: ``python -m benchmarks.bench_learned`` from the repository root (about 25 min on one core;
 BENCH_QUICK=1 for a smoke test; BENCH_SIZES, BENCH_SEEDS, BENCH_LINKS, BENCH_STEPS,
 BENCH_SHOOTING_STEPS change the grid). Writes benchmarks/RESULTS_learned.md and
-docs/images/learned_benchmark.png; ``--report`` rebuilds both from the runs saved in BENCH_ROWS.
+docs/images/learned_benchmark.png; ``--report`` rebuilds both from the runs saved in BENCH_ROWS;
+``--recipes`` compares the issue's baseline recipe with these defaults (about 15 min; writes
+benchmarks/RESULTS_learned_recipes.md).
 """
 
 from __future__ import annotations
@@ -130,8 +132,14 @@ def optimizers(steps):
     return _OPTIMIZERS[steps]
 
 
-def fit(kind, links, train_angles, true_cartesian, true_angles, seed):
-    """Both phases; returns the trained model and the seconds."""
+#: The recipe of the issue's baseline: plain adam(1e-3) on the raw accelerations, full batch, no
+#: multiple-shooting phase (the same step count, STEPS).
+ISSUE_OPTIMIZER = optax.adam(1e-3)
+
+
+def fit(kind, links, train_angles, true_cartesian, true_angles, seed, recipe="defaults"):
+    """Both phases (``recipe="issue"``: the issue's baseline recipe); returns the trained model,
+    the seconds and the failed-member counts."""
     key = jax.random.PRNGKey(1000 + seed)
     model = make_models(kind, links, key)
     if kind == "CLNN":
@@ -142,6 +150,10 @@ def fit(kind, links, train_angles, true_cartesian, true_angles, seed):
         states = jll.state_data(true_angles, data)
     scale = jnp.std(states.qdd, axis=0)
     first, second = optimizers(STEPS)
+    if recipe == "issue":
+        first, scale, batch = ISSUE_OPTIMIZER, None, None
+    else:
+        batch = min(BATCH, states.q.shape[0])
     start = time.perf_counter()
     result = jll.train(
         model,
@@ -149,12 +161,12 @@ def fit(kind, links, train_angles, true_cartesian, true_angles, seed):
         states,
         optimizer=first,
         steps=STEPS,
-        batch_size=min(BATCH, states.q.shape[0]),
+        batch_size=batch,
         key=jax.random.PRNGKey(seed),
     )
     model = result.model
     accel_failed = int(result.failed[-min(100, len(result.failed)) :].sum())
-    if SHOOTING_STEPS:
+    if SHOOTING_STEPS and recipe != "issue":
         pieces = jll.segments(data, SEGMENT)
         spread = jnp.std(data.q.reshape(-1, data.q.shape[-1]), axis=0)
         loss = jll.MultipleShootingLoss(SEGMENT, jll.RolloutLoss(scale=spread))
@@ -275,6 +287,107 @@ def main():
                     )
                     ROWS.write_text(json.dumps(rows))
     write_report(rows)
+
+
+RECIPE_SIZES = (2, 8, 32)
+
+
+def compare_recipes():
+    """The issue's baseline recipe against the defaults above, on the same data and models.
+
+    The issue's setting (double pendulum, 2, 8 and 32 training trajectories, width 64, depth 2,
+    STEPS acceleration steps, 16 held-out trajectories, θ̈ RMS) with its recipe (plain adam(1e-3)
+    on the raw accelerations, full batch) and with this benchmark's defaults, for every seed.
+    Writes benchmarks/RESULTS_learned_recipes.md.
+    """
+    rows = []
+    started = time.perf_counter()
+    links = 2
+    angles, cartesian = true_system(links)
+    sizes = (2, 4) if QUICK else RECIPE_SIZES
+    for seed in SEEDS:
+        k_train, k_test = jax.random.split(jax.random.PRNGKey(seed))
+        pool = trajectories_for(angles, links, k_train, max(sizes), T_TRAIN)
+        test = trajectories_for(angles, links, k_test, HELD_OUT, T_TEST)
+        true_accelerations = np.asarray(jll.state_data(angles, test).qdd)
+        for size in sizes:
+            train_angles = jax.tree.map(lambda x: x[:size], pool)
+            for recipe in ("issue", "defaults"):
+                for kind in MODELS:
+                    model, seconds, _, _ = fit(kind, links, train_angles, cartesian, angles, seed, recipe)
+                    errors, ts = rollout_errors(kind, model, test)
+                    predicted = np.asarray(angular_accelerations(kind, model, test))
+                    ok = np.all(np.isfinite(predicted), axis=1)
+                    accel_rms = float(np.sqrt(np.mean((predicted[ok] - true_accelerations[ok]) ** 2)))
+                    row = {
+                        "seed": seed,
+                        "size": size,
+                        "recipe": recipe,
+                        "model": kind,
+                        "train_s": seconds,
+                        "accel_rms": accel_rms,
+                        "accel_failed": int(np.sum(~ok)),
+                        "zero_rms": float(np.sqrt(np.mean(true_accelerations**2))),
+                        "errors": [float(np.nanmedian(errors[:, _index(ts, t)])) for t in REPORT_TIMES],
+                        "rollouts_failed": int(np.sum(~np.isfinite(errors[:, -1]))),
+                        "rollouts": int(errors.shape[0]),
+                    }
+                    rows.append(row)
+                    print(
+                        f"[{time.perf_counter() - started:7.1f}s] seed {seed} N={size:2d} {recipe:8s} "
+                        f"{kind:5s} θ̈ RMS {accel_rms:.3g} err@1,2,4s "
+                        + " ".join(f"{e:.3g}" for e in row["errors"])
+                        + f" failed {row['rollouts_failed']}/{row['rollouts']} train {seconds:.1f}s",
+                        flush=True,
+                    )
+    write_recipes_report(rows)
+
+
+def write_recipes_report(rows):
+    date = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    lines = [
+        "# Learned Lagrangians: the issue's baseline recipe against the defaults",
+        "",
+        f"{date}; {_cpu_name()}, one pinned core; jax {jax.__version__}, float64. "
+        f"`python -m benchmarks.bench_learned --recipes`.",
+        "",
+        f"Double pendulum, the data of `bench_learned.py` (θ, θ̇ ~ U(−1, 1), 2 s at 0.05 s), {len(SEEDS)} "
+        f"seeds, {HELD_OUT} held-out 4 s trajectories per seed, the same models (width {WIDTH}, depth "
+        f"{DEPTH}) and the same initial weights for both recipes. *issue*: plain adam(1e-3) on the raw "
+        f"accelerations, full batch, {STEPS} steps. *defaults*: per-coordinate scaled accelerations, "
+        f"minibatches of {BATCH}, warm-up + cosine adam (peak 3e-3) with clipping, {STEPS} steps, then "
+        f"{SHOOTING_STEPS} multiple-shooting steps. θ̈ RMS in rad/s² over all held-out states "
+        "(RMS over seeds); rollout error in metres, median over held-out trajectories × seeds; "
+        "failed: rollouts not finite at 4 s.",
+        "",
+        "| trajectories | model | recipe | θ̈ RMS | error @ 1 s | error @ 2 s | error @ 4 s | failed "
+        "| train s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    groups = {}
+    for row in rows:
+        groups.setdefault((row["size"], MODELS.index(row["model"]), row["recipe"] != "issue"), []).append(row)
+    for (size, kind_index, _), group in sorted(groups.items()):
+        accel = _rms([r["accel_rms"] for r in group])
+        errors = np.asarray([r["errors"] for r in group])
+        cells = " | ".join(
+            f"{np.nanmedian(errors[:, j]):.3g}" if np.any(np.isfinite(errors[:, j])) else "—"
+            for j in range(len(REPORT_TIMES))
+        )
+        failed = sum(r["rollouts_failed"] for r in group)
+        total = sum(r["rollouts"] for r in group)
+        seconds = float(np.mean([r["train_s"] for r in group]))
+        accel_text = "—" if accel is None else f"{accel:.3g}"
+        lines.append(
+            f"| {size} | {MODELS[kind_index]} | {group[0]['recipe']} | {accel_text} | {cells} | "
+            f"{failed}/{total} | {seconds:.0f} |"
+        )
+    zero = _rms([r["zero_rms"] for r in rows])
+    lines.append(f"| — | zero | — | {zero:.3g} | — | — | — | — | — |")
+    text = "\n".join(lines) + "\n"
+    out = Path(tempfile.gettempdir()) if QUICK else ROOT / "benchmarks"
+    (out / "RESULTS_learned_recipes.md").write_text(text)
+    print(text)
 
 
 def trajectories_for(system, links, key, count, duration):
@@ -431,5 +544,7 @@ def plot(summary):
 if __name__ == "__main__":
     if "--report" in sys.argv:  # rebuild the table and the plot from the saved runs
         write_report(json.loads(ROWS.read_text()))
+    elif "--recipes" in sys.argv:  # the issue's baseline recipe against the defaults
+        compare_recipes()
     else:
         main()
