@@ -41,7 +41,7 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Callable
-from typing import Any
+from typing import Any, cast
 
 import diffrax
 import equinox as eqx
@@ -564,6 +564,39 @@ def initial_sides(segment: _Segment, baumgarte, q0, qd0, t0, args, with_values: 
     return side
 
 
+class _SegmentCarry(eqx.Module):
+    """What one segment of :func:`solve_segments` hands to the next (the ``lax.scan`` carry)."""
+
+    t: Array  # the segment's start (t1 once done)
+    q: Array
+    qd: Array
+    active: Array  # (m_h,) acting one-sided rows
+    modes: Array  # (contacts,) friction modes: 0 stick, ±1 slip
+    done: Array
+    sides: Array  # (events,) the side of each user condition
+    out_q: Array  # (saves, n): the saves filled so far, inf elsewhere
+    out_qd: Array
+    out_active: Array
+    out_modes: Array
+    filled: Array  # (saves,) which saves are filled
+    count: Array  # events that happened
+    failure: failures.Failure
+    steps: dict[str, Array]  # diffrax's step counts, summed
+
+
+class _SegmentRecord(eqx.Module):
+    """What one segment leaves in the :class:`EventLog` (one row of the ``lax.scan`` output)."""
+
+    time: Array
+    kind: Array
+    index: Array
+    q: Array
+    qd: Array
+    active: Array
+    impulses: Array
+    modes: Array
+
+
 @compilation.filter_jit
 def solve_segments(
     system,
@@ -642,24 +675,17 @@ def solve_segments(
     newton = 4 if has_reset else 2
     reset_branches = [_reset_branch(e, j, n, dtype) for j, e in enumerate(events)]
 
-    def run_segment(carry, _):
-        (
-            t_s,
-            q,
-            qd,
-            active,
-            modes,
-            done,
-            sides,
-            out_q,
-            out_qd,
-            out_active,
-            out_modes,
-            filled,
-            count,
-            failure,
-            steps,
-        ) = carry
+    def run_segment(carry: _SegmentCarry, _) -> tuple[_SegmentCarry, _SegmentRecord]:
+        t_s, q, qd, active, modes = carry.t, carry.q, carry.qd, carry.active, carry.modes
+        done, sides, filled, count, failure, steps = (
+            carry.done,
+            carry.sides,
+            carry.filled,
+            carry.count,
+            carry.failure,
+            carry.steps,
+        )
+        out_q, out_qd, out_active, out_modes = carry.out_q, carry.out_qd, carry.out_active, carry.out_modes
         departing = (
             unilateral & ~active & (holonomic_residual(system, q, t_s, args) <= tolerance) if m_h else None
         )
@@ -903,15 +929,15 @@ def solve_segments(
             released, release_index, jnp.where(contacted, contact_index, jnp.where(any_user, user_index, -1))
         )
         index = jnp.where(frictioned, friction_index, index)
-        record = (
-            jnp.where(done | broken, jnp.inf, t_e),
-            kind,
-            index,
-            q_next,
-            qd_next,
-            new_active,
-            impulses,
-            new_modes.astype(jnp.int32),
+        record = _SegmentRecord(
+            time=jnp.where(done | broken, jnp.inf, t_e),
+            kind=kind,
+            index=index,
+            q=q_next,
+            qd=qd_next,
+            active=new_active,
+            impulses=impulses,
+            modes=new_modes.astype(jnp.int32),
         )
         count = count + happened.astype(count.dtype)
         ran = ~done
@@ -921,22 +947,22 @@ def solve_segments(
         }
         done = done | reached_end | stop | broken
         t_next = jnp.where(done, t1, t_e)
-        carry = (
-            t_next,
-            q_next,
-            qd_next,
-            new_active,
-            new_modes,
-            done,
-            new_sides,
-            out_q,
-            out_qd,
-            out_active,
-            out_modes,
-            filled,
-            count,
-            failure,
-            steps,
+        carry = _SegmentCarry(
+            t=t_next,
+            q=q_next,
+            qd=qd_next,
+            active=new_active,
+            modes=new_modes,
+            done=done,
+            sides=new_sides,
+            out_q=out_q,
+            out_qd=out_qd,
+            out_active=out_active,
+            out_modes=out_modes,
+            filled=filled,
+            count=count,
+            failure=failure,
+            steps=steps,
         )
         return carry, record
 
@@ -954,34 +980,36 @@ def solve_segments(
         max_steps=max_steps,
         max_segments=max_segments,
     )
-    carry0 = (
-        t0,
-        q0,
-        qd0,
-        active0,
-        modes0,
-        jnp.asarray(False),
-        initial_sides(
-            _Segment(system, tuple(events), unilateral, active0, t0, None, modes=modes0),
-            baumgarte,
-            q0,
-            qd0,
-            t0,
-            args,
+    carry0 = _SegmentCarry(
+        t=t0,
+        q=q0,
+        qd=qd0,
+        active=active0,
+        modes=modes0,
+        done=jnp.asarray(False),
+        sides=cast(
+            Array,
+            initial_sides(
+                _Segment(system, tuple(events), unilateral, active0, t0, None, modes=modes0),
+                baumgarte,
+                q0,
+                qd0,
+                t0,
+                args,
+            ),
         ),
-        inf,
-        inf,
-        jnp.zeros((num_saves, m_h), bool),
-        jnp.zeros((num_saves, num_friction), dtype),
-        jnp.zeros((num_saves,), bool),
-        jnp.asarray(0, jnp.int32),
-        none,
-        {key: jnp.asarray(0, jnp.int32) for key in _STEP_COUNTS},
+        out_q=inf,
+        out_qd=inf,
+        out_active=jnp.zeros((num_saves, m_h), bool),
+        out_modes=jnp.zeros((num_saves, num_friction), dtype),
+        filled=jnp.zeros((num_saves,), bool),
+        count=jnp.asarray(0, jnp.int32),
+        failure=none,
+        steps={key: jnp.asarray(0, jnp.int32) for key in _STEP_COUNTS},
     )
     carry, records = jax.lax.scan(run_segment, carry0, None, length=max_segments)
-    t_last, q_last, qd_last, _, _, done, _, out_q, out_qd, out_active, out_modes, _, count, failure, steps = (
-        carry
-    )
+    t_last, q_last, qd_last, done, failure = carry.t, carry.q, carry.qd, carry.done, carry.failure
+    out_q, out_qd, out_active, out_modes = carry.out_q, carry.out_qd, carry.out_active, carry.out_modes
     out_of_segments = ~done & (failure.code == failures.NONE)
     failure = eqx.tree_at(
         lambda f: (f.code, f.t0, f.t, f.q, f.qd),
@@ -1002,27 +1030,24 @@ def solve_segments(
         finite = jnp.isfinite(ts)[:, None] & jnp.all(jnp.isfinite(out_q), axis=1, keepdims=True)
         out_q = jnp.where(finite, out_q, jnp.inf)
         out_qd = jnp.where(finite, out_qd, jnp.inf)
-    ran = jnp.sum(records[1] != _NO_EVENT).astype(jnp.int32)
+    ran = jnp.sum(records.kind != _NO_EVENT).astype(jnp.int32)
     # The unrecorded crossings leave the log (a stable sort puts them behind the real
     # entries), then read as padding.
-    silent = records[1] == _SILENT
+    silent = records.kind == _SILENT
     order = jnp.argsort(silent, stable=True)
-    time, kind, index, q_rec, qd_rec, active_rec, impulses_rec, modes_rec = (x[order] for x in records)
+    records = jax.tree.map(lambda x: x[order], records)
     silent = silent[order]
-    time = jnp.where(silent, jnp.inf, time)
-    kind = jnp.where(silent, _NO_EVENT, kind)
-    index = jnp.where(silent, -1, index)
     log = EventLog(
-        time=time,
-        kind=kind,
-        index=index,
-        q=q_rec,
-        qd=qd_rec,
-        active=active_rec,
-        impulses=impulses_rec,
-        count=count,
-        modes=modes_rec,
+        time=jnp.where(silent, jnp.inf, records.time),
+        kind=jnp.where(silent, _NO_EVENT, records.kind),
+        index=jnp.where(silent, -1, records.index),
+        q=records.q,
+        qd=records.qd,
+        active=records.active,
+        impulses=records.impulses,
+        count=carry.count,
+        modes=records.modes,
     )
     # The statistics of the whole run: diffrax's, summed over the segments that ran.
-    stats = {**steps, "max_steps": max_steps, "num_segments": ran}
+    stats = {**carry.steps, "max_steps": max_steps, "num_segments": ran}
     return ts, out_q, out_qd, out_active, log, failure, stats, out_modes.astype(jnp.int32)
