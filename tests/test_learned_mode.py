@@ -151,6 +151,16 @@ def test_rollout_stops_where_the_learned_mass_matrix_fails():
     np.testing.assert_allclose(traj.q[reached, 0], ts[reached], atol=1e-8)
 
 
+def test_robust_solve_tolerance_is_a_real_number_in_0_1():
+    # NumPy scalars (a float32 from a config, a 0-d array) are real numbers like any other.
+    assert jl.RobustSolve(rtol=np.float32(0.5)).rtol == 0.5
+    assert jl.RobustSolve(rtol=np.array(1e-9)).rtol == 1e-9
+    assert jl.RobustSolve().floor(np.dtype(np.float64)) == 1e-12
+    for bad in (True, 1.0, -1e-3, "1e-9", np.ones(2)):
+        with pytest.raises(ValueError, match=r"real number in \[0, 1\)"):
+            jl.RobustSolve(rtol=bad)
+
+
 # ----------------------------------------------------------------------------- checks
 def test_compiled_checks_need_no_eigen_decomposition():
     """Inside a program the definiteness and rank checks are Cholesky pivots: no LAPACK

@@ -24,6 +24,7 @@ operations, larger ones by a loop of rank-one updates (no LAPACK call either).
 from __future__ import annotations
 
 import abc
+import numbers
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -95,6 +96,18 @@ class CheckedCholesky(AbstractMassSolve):
         return Factorization(spd_solver(matrix, diagonal), jnp.asarray(True))
 
 
+def _as_python_float(value: Any) -> Any:
+    """A real number (``1e-9``, ``np.float32(1e-6)``, a 0-d NumPy array) as a Python float;
+    anything else unchanged, for ``__check_init__`` to refuse by name."""
+    if isinstance(value, (bool, np.bool_)) or value is None:
+        return value
+    if isinstance(value, numbers.Real) or (
+        isinstance(value, np.ndarray) and value.shape == () and value.dtype.kind in "iuf"
+    ):
+        return float(value)
+    return value
+
+
 class RobustSolve(AbstractMassSolve):
     r"""``mass_solve`` for learned Lagrangians: a failed state gives NaN, never an error.
 
@@ -128,11 +141,13 @@ class RobustSolve(AbstractMassSolve):
     """
 
     checked: ClassVar[bool] = False
-    rtol: float | None = None
+    rtol: float | None = eqx.field(default=None, converter=_as_python_float)
 
     def __check_init__(self):
-        if self.rtol is not None and not (isinstance(self.rtol, (int, float)) and 0 <= self.rtol < 1):
-            raise ValueError(f"RobustSolve(rtol=...) must be a float in [0, 1) or None; got {self.rtol!r}.")
+        if self.rtol is not None and not (isinstance(self.rtol, float) and 0 <= self.rtol < 1):
+            raise ValueError(
+                f"RobustSolve(rtol=...) must be a real number in [0, 1) or None; got {self.rtol!r}."
+            )
 
     def floor(self, dtype: np.dtype) -> float:
         """The relative pivot floor ``rtol`` for ``dtype``."""
