@@ -154,7 +154,10 @@ def train(
             value = float(_evaluate(model, validation, loss).value)
             validation_loss.append(value)
             validation_steps.append(i)
-            if value < best_value * (1.0 - min_improvement) or not math.isfinite(best_value):
+            improved = math.isfinite(value) and (
+                not math.isfinite(best_value) or value < best_value * (1.0 - min_improvement)
+            )
+            if improved:
                 best_value, best_model, best_step, bad = value, model, i, 0
             else:
                 bad += 1
@@ -175,7 +178,7 @@ def train(
         value = float(_evaluate(model, validation, loss).value)
         validation_loss.append(value)
         validation_steps.append(len(train_loss))
-        if value < best_value:
+        if math.isfinite(value) and value < best_value:
             best_model, best_step = model, len(train_loss)
     losses = np.asarray(jnp.stack(train_loss)) if train_loss else np.zeros((0,))
     counts = np.asarray(jnp.stack(failed)) if failed else np.zeros((0,), np.int32)
