@@ -13,7 +13,7 @@ Models (``jaxlag.learned``), all MLPs of width 64 and depth 2 with softplus:
 * CLNN: ``ConstrainedLagrangian`` in the Cartesian positions of the bobs, learned masses and
   potential, the known rod constraints ``|x_k − x_{k−1}| = 1`` imposed by the KKT solve.
 
-Training defaults (better than the issue's baseline of plain adam(1e-3), 2000 steps, raw targets):
+Training defaults (compared with a plain recipe, adam(1e-3) on raw targets, by ``--recipes``):
 accelerations normalized per coordinate by the training set's standard deviation, minibatches of
 256 states, adam with a warm-up and cosine decay (peak 3e-3), gradient clipping, then a short
 multiple-shooting fine-tune (segments of 5 samples = 0.2 s, RK4 at the sample step) at 3e-4, whose
@@ -30,8 +30,8 @@ Run: ``python -m benchmarks.bench_learned`` from the repository root (about 25 m
 BENCH_QUICK=1 for a smoke test; BENCH_SIZES, BENCH_SEEDS, BENCH_LINKS, BENCH_STEPS,
 BENCH_SHOOTING_STEPS change the grid). Writes benchmarks/RESULTS_learned.md and
 docs/images/learned_benchmark.png; ``--report`` rebuilds both from the runs saved in BENCH_ROWS;
-``--recipes`` compares the issue's baseline recipe with these defaults (about 15 min; writes
-benchmarks/RESULTS_learned_recipes.md).
+``--recipes`` compares a plain recipe (adam(1e-3), raw targets, full batch) with these defaults
+(about 15 min; writes benchmarks/RESULTS_learned_recipes.md).
 """
 
 from __future__ import annotations
@@ -132,13 +132,13 @@ def optimizers(steps):
     return _OPTIMIZERS[steps]
 
 
-#: The recipe of the issue's baseline: plain adam(1e-3) on the raw accelerations, full batch, no
+#: The plain recipe: adam(1e-3) on the raw accelerations, full batch, no
 #: multiple-shooting phase (the same step count, STEPS).
 ISSUE_OPTIMIZER = optax.adam(1e-3)
 
 
 def fit(kind, links, train_angles, true_cartesian, true_angles, seed, recipe="defaults"):
-    """Both phases (``recipe="issue"``: the issue's baseline recipe); returns the trained model,
+    """Both phases (``recipe="plain"``: adam(1e-3), raw targets, full batch); returns the trained model,
     the seconds and the failed-member counts."""
     key = jax.random.PRNGKey(1000 + seed)
     model = make_models(kind, links, key)
@@ -150,7 +150,7 @@ def fit(kind, links, train_angles, true_cartesian, true_angles, seed, recipe="de
         states = jll.state_data(true_angles, data)
     scale = jnp.std(states.qdd, axis=0)
     first, second = optimizers(STEPS)
-    if recipe == "issue":
+    if recipe == "plain":
         first, scale, batch = ISSUE_OPTIMIZER, None, None
     else:
         batch = min(BATCH, states.q.shape[0])
@@ -166,7 +166,7 @@ def fit(kind, links, train_angles, true_cartesian, true_angles, seed, recipe="de
     )
     model = result.model
     accel_failed = int(result.failed[-min(100, len(result.failed)) :].sum())
-    if SHOOTING_STEPS and recipe != "issue":
+    if SHOOTING_STEPS and recipe != "plain":
         pieces = jll.segments(data, SEGMENT)
         spread = jnp.std(data.q.reshape(-1, data.q.shape[-1]), axis=0)
         loss = jll.MultipleShootingLoss(SEGMENT, jll.RolloutLoss(scale=spread))
@@ -293,10 +293,10 @@ RECIPE_SIZES = (2, 8, 32)
 
 
 def compare_recipes():
-    """The issue's baseline recipe against the defaults above, on the same data and models.
+    """A plain recipe against the defaults above, on the same data, models and initial weights.
 
-    The issue's setting (double pendulum, 2, 8 and 32 training trajectories, width 64, depth 2,
-    STEPS acceleration steps, 16 held-out trajectories, θ̈ RMS) with its recipe (plain adam(1e-3)
+    A first attempt's setting (double pendulum, 2, 8 and 32 training trajectories, width 64,
+    depth 2, STEPS acceleration steps, 16 held-out trajectories, θ̈ RMS) with its recipe (adam(1e-3)
     on the raw accelerations, full batch) and with this benchmark's defaults, for every seed.
     Writes benchmarks/RESULTS_learned_recipes.md.
     """
@@ -312,7 +312,7 @@ def compare_recipes():
         true_accelerations = np.asarray(jll.state_data(angles, test).qdd)
         for size in sizes:
             train_angles = jax.tree.map(lambda x: x[:size], pool)
-            for recipe in ("issue", "defaults"):
+            for recipe in ("plain", "defaults"):
                 for kind in MODELS:
                     model, seconds, _, _ = fit(kind, links, train_angles, cartesian, angles, seed, recipe)
                     errors, ts = rollout_errors(kind, model, test)
@@ -346,14 +346,14 @@ def compare_recipes():
 def write_recipes_report(rows):
     date = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     lines = [
-        "# Learned Lagrangians: the issue's baseline recipe against the defaults",
+        "# Learned Lagrangians: a plain training recipe against the defaults",
         "",
         f"{date}; {_cpu_name()}, one pinned core; jax {jax.__version__}, float64. "
         f"`python -m benchmarks.bench_learned --recipes`.",
         "",
         f"Double pendulum, the data of `bench_learned.py` (θ, θ̇ ~ U(−1, 1), 2 s at 0.05 s), {len(SEEDS)} "
         f"seeds, {HELD_OUT} held-out 4 s trajectories per seed, the same models (width {WIDTH}, depth "
-        f"{DEPTH}) and the same initial weights for both recipes. *issue*: plain adam(1e-3) on the raw "
+        f"{DEPTH}) and the same initial weights for both recipes. *plain*: adam(1e-3) on the raw "
         f"accelerations, full batch, {STEPS} steps. *defaults*: per-coordinate scaled accelerations, "
         f"minibatches of {BATCH}, warm-up + cosine adam (peak 3e-3) with clipping, {STEPS} steps, then "
         f"{SHOOTING_STEPS} multiple-shooting steps. θ̈ RMS in rad/s² over all held-out states "
@@ -366,7 +366,7 @@ def write_recipes_report(rows):
     ]
     groups = {}
     for row in rows:
-        groups.setdefault((row["size"], MODELS.index(row["model"]), row["recipe"] != "issue"), []).append(row)
+        groups.setdefault((row["size"], MODELS.index(row["model"]), row["recipe"] != "plain"), []).append(row)
     for (size, kind_index, _), group in sorted(groups.items()):
         accel = _rms([r["accel_rms"] for r in group])
         errors = np.asarray([r["errors"] for r in group])
@@ -470,7 +470,7 @@ def write_report(rows):
         "1 m), median over held-out trajectories × seeds; `(k failed)`: rollouts not finite at that "
         "time, left out of the median. `still` is the error of predicting the initial positions "
         "forever. θ̈ RMS: held-out angular accelerations at every state of the held-out trajectories, "
-        "rad/s², RMS over states, coordinates and seeds (the issue's baseline metric); `zero` predicts "
+        "rad/s², RMS over states, coordinates and seeds (the metric of a first baseline); `zero` predicts "
         "θ̈ = 0. Training time: mean seconds per run on one core, both phases, compilation included "
         "(the first size of each model and chain pays it, ~20–60 s on this machine).",
         "",
@@ -544,7 +544,7 @@ def plot(summary):
 if __name__ == "__main__":
     if "--report" in sys.argv:  # rebuild the table and the plot from the saved runs
         write_report(json.loads(ROWS.read_text()))
-    elif "--recipes" in sys.argv:  # the issue's baseline recipe against the defaults
+    elif "--recipes" in sys.argv:  # a plain recipe against the defaults
         compare_recipes()
     else:
         main()
