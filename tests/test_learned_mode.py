@@ -162,6 +162,34 @@ def test_robust_solve_tolerance_is_a_real_number_in_0_1():
 
 
 # ----------------------------------------------------------------------------- checks
+def _factored_lagrangian(q, qd, args):
+    """``½ q̇ᵀ C Cᵀ q̇ − ½|q|²`` with ``C = [[10⁻³, 0], [c cos q₁, 10⁻³]]``: the Cholesky pivots
+    of ``M = C Cᵀ`` are ``10⁻⁶`` whatever ``c`` is, while ``κ(M) ≈ (c / 10⁻⁶)²``."""
+    factor = jnp.array([[1e-3, 0.0], [args * jnp.cos(q[1]), 1e-3]])
+    return 0.5 * qd @ (factor @ factor.T) @ qd - 0.5 * q @ q
+
+
+def test_compiled_mass_check_sees_an_ill_conditioned_matrix_with_good_pivots():
+    # c = 30: κ(M) = 8e17, singular to working precision, but every pivot is 1e-6 against
+    # max M_ii = 900 (ratio 1e-9 > 1e-12). The eager check (eigenvalues) refused it; the compiled
+    # pivot check let it through and the run ended at max_steps. Both now refuse it, and the
+    # learned mode fails the state; c = 1e-3 (κ = 2.6) passes all three.
+    q0, qd0, ts = jnp.array([0.1, 0.0]), jnp.zeros(2), jnp.linspace(0.0, 1.0, 3)
+    checked = jl.System(_factored_lagrangian)
+    robust = jl.System(_factored_lagrangian, mass_solve=jl.RobustSolve())
+    run = jax.jit(lambda c: jl.simulate(checked, q0, qd0, ts, args=c).q)
+    message = r"mass matrix M = ∂²L/∂q̇² is singular or not positive definite"
+    with pytest.raises(ValueError, match=message):
+        jl.simulate(checked, q0, qd0, ts, args=30.0)
+    with pytest.raises(Exception, match=message):
+        run(30.0)
+    assert np.all(np.isnan(robust.accelerations(q0, qd0, args=30.0)))
+    assert np.all(np.isfinite(run(1e-3)))
+    np.testing.assert_allclose(
+        robust.accelerations(q0, qd0, args=1e-3), checked.accelerations(q0, qd0, args=1e-3), rtol=1e-14
+    )
+
+
 def test_compiled_checks_need_no_eigen_decomposition():
     """Inside a program the definiteness and rank checks are Cholesky pivots: no LAPACK
     eigen-solver or SVD (whose batched kernels deadlocked jaxlib's CPU pool), same messages."""

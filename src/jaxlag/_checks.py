@@ -5,8 +5,9 @@ eagerly and raise ``ValueError`` with the numbers and the offending constraints.
 transformation they become ``eqx.error_if`` checks compiled into the program, so bad input
 still stops the computation.
 
-The compiled checks compute no eigen-decomposition and no SVD: definiteness of ``M`` and
-independence of the constraint rows are read from Cholesky pivots
+The compiled checks compute no eigen-decomposition and no SVD: definiteness of ``M`` (its
+condition number within a factor n, ``max_i M_ii · trace(M⁻¹)`` from the factor) and
+independence of the constraint rows are read from Cholesky factors
 (:func:`jaxlag._mechanics.mass_solve.pivots_pass`, :func:`~jaxlag._mechanics.mass_solve.independent_rows`),
 written out or looped in ``jax.numpy``. Batched LAPACK eigen-solvers under
 ``jit(vmap(grad(...)))`` deadlocked jaxlib 0.10's CPU thread pool, and cost more than the

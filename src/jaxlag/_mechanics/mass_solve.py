@@ -113,16 +113,20 @@ class RobustSolve(AbstractMassSolve):
 
     ``M`` (and the Schur complement ``S = G M⁻¹ Gᵀ``) is factored by Cholesky, ``M = L Lᵀ``,
     whose pivots ``s_j = L_jj² = M_jj − Σ_{k<j} L_jk²`` are the diagonal of the successive Schur
-    complements. **A state fails** when ``M`` has a non-finite entry or a pivot is at or below
-    the floor
+    complements. **A state fails** when ``M`` has a non-finite entry, when a pivot is at or
+    below the floor, or when the condition estimate from the factor exceeds ``1/rtol``:
 
-        ``s_j ≤ rtol · max_i |M_ii|``,
+        ``s_j ≤ rtol · max_i |M_ii|``   or   ``κ̂ = max_i M_ii · trace(M⁻¹) > n/rtol``,
 
-    with ``rtol`` 10⁻¹² in float64 (``max(10⁻¹², 100 ε)`` in other dtypes; ``rtol=None``). This
-    holds for every indefinite or singular ``M`` (``λ_min ≤ min_j s_j`` and
-    ``max_i M_ii ≤ λ_max``, so a failed ``M`` has ``λ_min ≤ rtol · λ_max``); every ``M`` with
-    ``λ_min > rtol · λ_max`` passes. The same test applies to ``S`` (redundant constraints fail
-    unless the system has ``least_squares=True``).
+    with ``rtol`` 10⁻¹² in float64 (``max(10⁻¹², 100 ε)`` in other dtypes; ``rtol=None``) and
+    ``trace(M⁻¹) = ‖L⁻¹‖_F²``. ``κ̂`` is the condition number ``κ = λ_max/λ_min`` within a
+    factor ``n`` (``κ/n ≤ κ̂ ≤ n κ``), and a pivot at the floor means ``κ ≥ 1/rtol``
+    (``λ_min ≤ s_j``, ``max_i M_ii ≤ λ_max``). So every ``M`` with ``κ ≤ 1/rtol`` passes (the
+    eigenvalue test of the eager checks, ``λ_min > rtol · λ_max``), and every indefinite or
+    singular ``M``, and every ``M`` with ``κ > n²/rtol``, fails. (The pivots alone would pass
+    ``M = C Cᵀ`` with a small diagonal and a large off-diagonal in ``C``, singular to working
+    precision.) The same test applies to ``S`` (redundant constraints fail unless the
+    system has ``least_squares=True``).
 
     For a failed state the accelerations, multipliers and constraint forces are NaN (the whole
     vector of that state) and nothing is raised, under ``jit``, ``vmap`` and ``grad``: the
@@ -178,7 +182,20 @@ def robust_factor(matrix, rtol: float, diagonal: bool = False) -> Factorization:
 
         return Factorization(solve_diagonal, ok)
     solve, pivots_ok = clipped_cholesky(safe, floor)
-    return Factorization(solve, finite & pivots_ok)
+    return Factorization(solve, finite & pivots_ok & well_conditioned(solve, scale, rtol, n))
+
+
+def well_conditioned(solve: Callable[[Any], Any], scale, rtol: float, n: int) -> Bool[Array, ""]:
+    """Whether ``κ̂ = max_i M_ii · trace(M⁻¹) ≤ n/rtol``, with ``M⁻¹`` from the factor's ``solve``.
+
+    ``κ̂`` is ``M``'s condition number within a factor ``n``: ``λ_max/n ≤ max_i M_ii ≤ λ_max``
+    and ``1/λ_min ≤ trace(M⁻¹) ≤ n/λ_min``. So ``κ ≤ 1/rtol`` (the eigenvalue test of the eager
+    checks) passes, ``κ > n²/rtol`` fails. The pivots alone do not bound it: ``M = C Cᵀ`` with
+    ``C = [[10⁻³, 0], [30, 10⁻³]]`` has pivots ``10⁻⁶`` against ``max M_ii ≈ 900`` and
+    ``κ ≈ 10¹⁵``. Costs ``n`` solves with the factor (no eigenvalues)."""
+    inverse_trace = jnp.trace(jax.lax.stop_gradient(solve(jnp.eye(n, dtype=scale.dtype))))
+    estimate = jax.lax.stop_gradient(scale) * inverse_trace
+    return estimate <= n / rtol
 
 
 def clipped_cholesky(a, floor) -> tuple[Callable[[Any], Any], Bool[Array, ""]]:
@@ -246,14 +263,16 @@ def clipped_cholesky(a, floor) -> tuple[Callable[[Any], Any], Bool[Array, ""]]:
 
 def pivots_pass(a, rtol: float) -> Bool[Array, ""]:
     """Whether the symmetric ``a`` passes the :class:`RobustSolve` test (finite, every Cholesky
-    pivot above ``rtol · max_i |a_ii|``): the compiled definiteness check, without eigenvalues."""
+    pivot above ``rtol · max_i |a_ii|``, ``max_i a_ii · trace(a⁻¹) ≤ n/rtol``): the compiled
+    definiteness check, without eigenvalues."""
     if a.shape[0] == 0:
         return jnp.asarray(True)
     a = jax.lax.stop_gradient(a)
     finite = jnp.all(jnp.isfinite(a))
     safe = jnp.where(jnp.isfinite(a), a, 0.0)
-    floor = rtol * jnp.max(jnp.abs(jnp.diagonal(safe)))
-    return finite & clipped_cholesky(safe, floor)[1]
+    scale = jnp.max(jnp.abs(jnp.diagonal(safe)))
+    solve, pivots_ok = clipped_cholesky(safe, rtol * scale)
+    return finite & pivots_ok & well_conditioned(solve, scale, rtol, a.shape[0])
 
 
 def independent_rows(rows, rtol: float) -> Bool[Array, ""]:

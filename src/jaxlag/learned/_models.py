@@ -134,6 +134,12 @@ class DeLaN(AbstractLagrangian):
     ``φ(q)``; so ``M`` is symmetric positive definite by construction for every weight and state
     (``C`` is invertible: ``det C = Π C_ii ≥ floorⁿ``). ``V(q)`` is a second MLP of ``φ(q)``
     (``φ`` the optional :class:`AngleEmbedding`).
+
+    That holds in exact arithmetic. In floating point ``M``'s condition number is ``κ(C)²``:
+    where the network makes the off-diagonal of ``C`` dwarf its diagonal (e.g. entries ~40
+    against the ``floor`` 10⁻³ gave ``κ(C) ≈ 6·10¹³``), ``M`` is singular to working precision,
+    and the learned-mode solve (:class:`~jaxlag.RobustSolve`) fails that state (NaN, counted)
+    rather than return a wrong ``q̈``. A larger ``floor`` bounds ``κ``.
     """
 
     factor_net: eqx.nn.MLP
