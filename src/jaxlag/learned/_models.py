@@ -97,9 +97,9 @@ class MLPLagrangian(AbstractLagrangian):
     (their absolute values), so that at initialization ``L`` is a positive combination of convex
     units of its last hidden layer: ``M`` is then positive definite at most states (all of them
     for ``depth=1``) and the acceleration loss has a gradient from the first step. With
-    ``eqx.nn.MLP``'s own initialization ``M`` is indefinite at nearly every state (issue 29
-    measured 495 of 512), every member fails and training cannot start. Training may change the
-    signs afterwards.
+    ``eqx.nn.MLP``'s own initialization ``M`` is indefinite at most states (394 of 512 random
+    double-pendulum MLPs at one state), often at every training state, and training cannot
+    start. Training may change the signs afterwards.
     """
 
     mlp: eqx.nn.MLP
@@ -139,7 +139,7 @@ class DeLaN(AbstractLagrangian):
     where the network makes the off-diagonal of ``C`` dwarf its diagonal (e.g. entries ~40
     against the ``floor`` 10⁻³ gave ``κ(C) ≈ 6·10¹³``), ``M`` is singular to working precision,
     and the learned-mode solve (:class:`~jaxlag.RobustSolve`) fails that state (NaN, counted)
-    rather than return a wrong ``q̈``. A larger ``floor`` bounds ``κ``.
+    rather than return a wrong ``q̈``. A larger ``floor`` lowers ``κ``.
     """
 
     factor_net: eqx.nn.MLP
