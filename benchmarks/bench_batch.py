@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 
 import jaxlag as jl
-from jaxlag._batch.batch import simulate_batch
+from jaxlag import simulate_batch
 
 from .bench_unconstrained import T, double_pendulum_explicit, double_pendulum_lagrangian, solve_hand
 

@@ -171,33 +171,30 @@ def jaxlag_batch(system, nsteps, **kwargs):
 
 def _jaxlag_kernel_only(system, nsteps):
     """jaxlag's Pallas backend without its CPU fallback (to ask whether it lowers for CUDA)."""
-    from jaxlag._batch.ensemble import make_settings
-    from jaxlag._batch.ensemble_entry import _run_impl
+    from jaxlag._batch.methods import BatchProblem
+    from jaxlag.experimental._ensemble.entry import ConstantGrid, EnsembleRun, _run_impl
+    from jaxlag.experimental._ensemble.integrate import make_settings
 
     settings = make_settings(diffrax.Tsit5(), diffrax.ConstantStepSize(), nsteps, None, False)
 
     def run(q0, qd0):
         batch = q0.shape[0]
         ts = jnp.broadcast_to(jnp.array([0.0, T]), (batch, 2))
-        grid = (jnp.full((batch, 1), nsteps, jnp.int32), nsteps, True, True)
-        return _run_impl(
-            system,
-            q0,
-            qd0,
-            ts,
-            None,
-            None,
-            settings,
-            None,
-            grid,
-            None,
-            None,
-            False,
-            1e-8,
-            False,
-            None,
-            "pallas",
-        )[0].q  # (trajectory, initial-state diagnostics)
+        grid = ConstantGrid(jnp.full((batch, 1), nsteps, jnp.int32), nsteps, True, True)
+        problem = BatchProblem(system, q0, qd0, ts, None, None, batch, 0, None)
+        ensemble = EnsembleRun(
+            problem=problem,
+            ts=ts,
+            settings=settings,
+            grid=grid,
+            dt0=None,
+            baumgarte=None,
+            projection=None,
+            check=False,
+            tolerance=1e-8,
+            keep_first=False,
+        )
+        return _run_impl(ensemble, "pallas")[0].q  # (trajectory, initial-state diagnostics)
 
     return run
 

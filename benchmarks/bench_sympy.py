@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxlag as jl
-from jaxlag._batch.batch import simulate_batch
+from jaxlag import simulate_batch
 
 from .bench_unconstrained import (
     G,

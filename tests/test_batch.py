@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxlag as jl
-from jaxlag._batch.batch import simulate_batch
+from jaxlag import simulate_batch
 
 jax.config.update("jax_enable_x64", True)
 

@@ -223,7 +223,7 @@ def test_per_member_save_times_and_shared_initial_state():
 
 
 def test_pallas_interpret_equals_the_xla_loop(monkeypatch):
-    import jaxlag._batch.pallas as kernel
+    import jaxlag.experimental._ensemble.pallas as kernel
 
     monkeypatch.setattr(kernel, "BLOCK", 2)  # 3 members: two programs, one padded member
     lanewise = []
@@ -439,7 +439,7 @@ def test_sharded_over_two_devices_equals_unsharded():
 def test_lanewise_equations_equal_vmap_for_a_nine_link_chain():
     # Cumulative sums, unstacking and the Cholesky-based solve of an n = 9 mass matrix, all as
     # column code (what the Pallas kernel runs).
-    from jaxlag._batch import lanes
+    from jaxlag.experimental._ensemble import lanes
 
     field = jl.EquationsOfMotion(jl.systems.n_link_pendulum(9))  # 9 > UNROLL_MAX: LAPACK calls
 

@@ -22,12 +22,9 @@ from . import (
 )
 from ._adjoint import ForwardSensitivities as ForwardSensitivities
 from ._batch.batch import batch_sharding as batch_sharding, simulate_batch as simulate_batch
-from ._batch.ensemble import RK4 as RK4
-from ._batch.methods import (
-    AbstractBatchMethod as AbstractBatchMethod,
-    Ensemble as Ensemble,
-    Vmap as Vmap,
-)
+from ._batch.ensemble import Ensemble as Ensemble
+from ._batch.methods import AbstractBatchMethod as AbstractBatchMethod
+from ._batch.vmap import Vmap as Vmap
 from ._cache import (
     UnsafeCacheDirectory as UnsafeCacheDirectory,
     default_cache_directory as default_cache_directory,
@@ -55,7 +52,9 @@ from ._fit import (
     fit as fit,
     least_squares_loss as least_squares_loss,
 )
+from ._options import SimulateOptions as SimulateOptions
 from ._simulate import simulate as simulate
+from ._solver.rk4 import RK4 as RK4
 from ._stabilization import (
     Baumgarte as Baumgarte,
     Projection as Projection,

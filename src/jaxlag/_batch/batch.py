@@ -13,9 +13,9 @@ has finished (finished members are masked), so a batch costs ``B ×`` the larges
 it. Group members of similar stiffness, or use a constant step.
 
 With ``method=jl.Ensemble()`` the batch is instead an array axis of one batched Runge–Kutta
-loop (:mod:`jaxlag._batch.ensemble`): no per-member solver loop, each member with its own step size when
-adaptive; ``method=None`` (the default) uses it on accelerators for constant steps and keeps
-``jl.Vmap()`` everywhere else (always on CPU).
+loop (:func:`jaxlag.experimental.simulate_ensemble`): no per-member solver loop, each member
+with its own step size when adaptive; ``method=None`` (the default) uses it on accelerators for
+constant steps and keeps ``jl.Vmap()`` everywhere else (always on CPU).
 
 Sharding uses JAX's own machinery. With ``sharding="auto"`` the batch axis is split over every
 device of ``jax.devices()`` (a 1-D :class:`jax.sharding.Mesh` named ``"batch"``): batched inputs
@@ -34,11 +34,7 @@ is then the global device list, ``"auto"`` builds a mesh over all of them, and t
 device of every host.
 """
 
-from __future__ import annotations
-
-import dataclasses
 import math
-from collections.abc import Sequence
 from typing import cast
 
 import diffrax
@@ -48,24 +44,23 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike, Float, PyTree
+from typing_extensions import Unpack
 
 from .. import _checks as checking
-from .. import _compile as compilation
 from .. import _errors as failures
-from .._misc import is_concrete
-from .._adjoint import ForwardSensitivities
 from .._checks import Checks
 from .._conventions import as_array_leaves, as_float_state, as_jax_array
-from .._custom_types import Args, RealScalarLike
-from .._events import Event, Events, as_events
-from .ensemble_entry import ensemble_by_default as _ensemble_by_default
-from .ensemble_entry import run_ensemble
-from .methods import AbstractBatchMethod, Ensemble, Vmap
-from .._simulate import save_times_message, as_projection, simulate
+from .._custom_types import Args
+from .._events import as_events
+from .._misc import is_concrete
+from .._options import SimulateOptions, check_option_names, default_option
+from .._simulate import as_projection
 from .._solver.validation import check_solver_controller
-from .._stabilization import Baumgarte, Projection
 from .._system import System
 from .._trajectory import Trajectory
+from .ensemble import Ensemble
+from .methods import AbstractBatchMethod, BatchProblem
+from .vmap import Vmap
 
 __all__ = ["simulate_batch", "batch_sharding"]
 
@@ -152,47 +147,6 @@ def _pad(x, pad):
     return jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)], axis=0)
 
 
-def _constrain(tree, sharding):
-    def place(x):
-        if isinstance(x, jax.Array) and x.ndim >= 1:
-            return jax.lax.with_sharding_constraint(x, sharding)
-        return x
-
-    return jax.tree.map(place, tree)
-
-
-@compilation.filter_jit
-def _run_batch(
-    system, q0, qd0, ts, batched_args, shared_args, q_axis, qd_axis, kwargs, out_sharding, initial_check
-):
-    """The vmapped simulation; with ``initial_check = (t0, tolerance)`` also every member's
-    initial-state diagnostics, returned as values for the host to raise (no callback)."""
-    # The trajectory's non-array leaves (the system's functions, an eqx.nn.MLP's activation in
-    # args) go around vmap, which maps arrays only.
-    box = {}
-
-    def one(q, qd, member_args):
-        member_args = eqx.combine(member_args, shared_args)
-        traj, box["static"] = eqx.partition(
-            simulate(system, q, qd, ts, args=member_args, **kwargs), eqx.is_array
-        )
-        if initial_check is None:
-            return traj, None
-        t0, tolerance = initial_check
-        return traj, checking.initial_state_diagnostics(system, q, qd, t0, member_args, tolerance)
-
-    out, diagnostics = jax.vmap(one, in_axes=(q_axis, qd_axis, 0))(q0, qd0, batched_args)
-    out = eqx.combine(out, box["static"])
-    if out_sharding is not None:
-        # The inputs arrive sharded along the batch axis; XLA's SPMD partitioner propagates that
-        # through the vmapped program, so each device integrates its slice. (The batched solver
-        # loop still agrees across devices on when to stop: a scalar all-reduce per step. A
-        # shard_map with one loop per device would avoid it, but lineax's structure check fails
-        # under shard_map for the event root finder, so events would not work.)
-        out = _constrain(out, out_sharding)
-    return out, diagnostics
-
-
 def simulate_batch(
     system: System,
     q0: Float[ArrayLike, "*batch n"],
@@ -203,21 +157,7 @@ def simulate_batch(
     args_axes: PyTree[int | None] = None,
     sharding: str | Mesh | NamedSharding | None = None,
     method: AbstractBatchMethod | None = None,
-    t0: RealScalarLike | None = None,
-    t1: RealScalarLike | None = None,
-    solver: diffrax.AbstractSolver | None = None,
-    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
-    dt0: RealScalarLike | None = None,
-    saveat: diffrax.SaveAt | None = None,
-    max_steps: int | None = 2**16,
-    adjoint: diffrax.AbstractAdjoint | ForwardSensitivities | None = None,
-    event: diffrax.Event | None = None,
-    throw: bool = True,
-    progress_meter: diffrax.AbstractProgressMeter | None = None,
-    baumgarte: Baumgarte | None = None,
-    projection: Projection | None = Projection(),
-    checks: Checks = Checks(),
-    events: Events | Event | Sequence[Event] = Events(),
+    **options: Unpack[SimulateOptions],
 ) -> Trajectory:
     """Simulate a batch of initial states and/or parameters in one compiled, vmapped call.
 
@@ -238,16 +178,17 @@ def simulate_batch(
     - ``method``: :class:`~jaxlag.Vmap` (``jl.Vmap()``: ``jax.vmap`` of
       :func:`~jaxlag.simulate`: every option, events, unilateral constraints),
       :class:`~jaxlag.Ensemble` (``jl.Ensemble(backend="auto")``: one batched Runge–Kutta loop
-      for the whole batch, :mod:`jaxlag._batch.ensemble`: explicit tableau solvers, constant or PID
-      steps; ``ts`` may then also be per member, ``(B, T)``; ``backend`` ``"xla"``,
+      for the whole batch, :func:`jaxlag.experimental.simulate_ensemble`: explicit tableau
+      solvers, constant or PID steps; ``ts`` may then also be per member, ``(B, T)``; ``backend`` ``"xla"``,
       ``"pallas"``, ``"pallas-interpret"`` or ``"auto"``) or ``None`` (default): ``jl.Ensemble()``
       on an accelerator (GPU/TPU) for constant steps whose step divides the save intervals (the
       result equals the vmap one to rounding), ``jl.Vmap()`` otherwise, in particular always on
       CPU.
-    - ``t0``, ``t1``, ``solver``, ``stepsize_controller``, ``dt0``, ``saveat``, ``max_steps``,
-      ``adjoint``, ``event``, ``throw``, ``progress_meter``, ``baumgarte``, ``projection``,
-      ``checks`` (a :class:`~jaxlag.Checks`) and ``events`` (a :class:`~jaxlag.Events`): the
-      options of :func:`~jaxlag.simulate`, with its defaults, applied to every member.
+    - ``**options``: the options of :func:`~jaxlag.simulate` (a
+      :class:`~jaxlag.SimulateOptions`: ``t0``, ``t1``, ``solver``, ``stepsize_controller``,
+      ``dt0``, ``saveat``, ``max_steps``, ``adjoint``, ``event``, ``throw``, ``progress_meter``,
+      ``baumgarte``, ``projection``, ``checks`` and ``events``), with its defaults, applied to
+      every member; ``throw=True`` raises once for the batch, naming the first failed member.
 
     Returns a :class:`~jaxlag.Trajectory` whose leaves all have a leading batch axis ``B``
     (``q``: ``(B, T, n)``), exactly what ``jax.vmap`` of ``simulate`` gives; its derived
@@ -298,111 +239,77 @@ def simulate_batch(
 
     if method is not None and not isinstance(method, AbstractBatchMethod):
         raise TypeError(f"method must be jl.Vmap(), jl.Ensemble(...) or None; got {method!r}.")
-    if solver is not None:  # the default, diffrax.Tsit5(), has an error estimate
-        controller = (
-            stepsize_controller
-            if stepsize_controller is not None
-            else diffrax.PIDController(rtol=1e-10, atol=1e-10)
-        )
-        check_solver_controller(solver, controller, default_controller=stepsize_controller is None)
-    if not isinstance(checks, Checks):
-        raise TypeError(f"checks must be a jl.Checks; got {type(checks).__name__}.")
-    options = dict(
-        t0=t0,
-        t1=t1,
-        solver=solver,
-        stepsize_controller=stepsize_controller,
-        dt0=dt0,
-        saveat=saveat,
-        max_steps=max_steps,
-        adjoint=adjoint,
-        event=event,
-        throw=throw,
-        progress_meter=progress_meter,
-        baumgarte=baumgarte,
-        projection=as_projection(projection, system),
-        checks=checks,
-        events=as_events(events),
-    )
-    if method is None:
-        method = Ensemble() if _ensemble_by_default(system, ts, options) else Vmap()
+    options = _checked_options(system, options)
     if ts is not None:
         ts = as_jax_array(ts, q0.dtype)
-        if ts.ndim == 2 and isinstance(method, Vmap):
-            raise ValueError(f"Per-member save times ts of shape {ts.shape} need method=jl.Ensemble().")
-
-    out_sharding, pad = None, 0
+    problem = BatchProblem(system, q0, qd0, ts, batched_args, shared_args, size, 0, None)
     if sharding is not None:
-        out_sharding = batch_sharding(sharding)
-        shards = _num_shards(out_sharding)
-        pad = -size % shards
-        replicated = NamedSharding(out_sharding.mesh, PartitionSpec())
+        problem = _placed(problem, batch_sharding(sharding))
+    if method is None:
+        method = _default_method(problem, options)
+    out = method.simulate(problem, options)
+    return _raise_for_failed_members(out, default_option(options, "throw"), system, batched_args, shared_args)
 
-        def place_batched(x):
-            return jax.device_put(_pad(x, pad), out_sharding)
 
-        def place_shared(x):
-            return jax.device_put(x, replicated) if isinstance(x, jax.Array) else x
+def _checked_options(system: System, options: SimulateOptions) -> SimulateOptions:
+    """``options`` checked where every method needs them checked, before anything is traced:
+    names, ``checks``, ``projection`` (``None`` for an unconstrained system), ``events`` and the
+    solver with its controller."""
+    check_option_names(options, "simulate_batch")
+    options = SimulateOptions(**options)
+    if not isinstance(default_option(options, "checks"), Checks):
+        raise TypeError(f"checks must be a jl.Checks; got {type(options.get('checks')).__name__}.")
+    if "projection" in options:
+        options["projection"] = as_projection(options["projection"], system)
+    if "events" in options:
+        options["events"] = as_events(options["events"])
+    solver, controller = options.get("solver"), options.get("stepsize_controller")
+    if solver is not None:  # the default, diffrax.Tsit5(), has an error estimate
+        default = controller is None
+        controller = diffrax.PIDController(rtol=1e-10, atol=1e-10) if controller is None else controller
+        check_solver_controller(solver, controller, default_controller=default)
+    return options
 
-        q0 = cast(jax.Array, place_batched(q0) if q0.ndim == 2 else place_shared(q0))
-        qd0 = cast(jax.Array, place_batched(qd0) if qd0.ndim == 2 else place_shared(qd0))
-        batched_args = jax.tree.map(place_batched, batched_args)
-        shared_args = jax.tree.map(place_shared, shared_args)
-        if ts is not None:
-            ts = place_batched(ts) if ts.ndim == 2 else place_shared(ts)
 
-    if isinstance(method, Ensemble):
-        out = run_ensemble(
-            system,
-            q0,
-            qd0,
-            ts,
-            batched_args,
-            shared_args,
-            size + pad,
-            options,
-            out_sharding,
-            method.backend,
-        )
-        if pad:
-            out = jax.tree.map(lambda x: x[:size] if isinstance(x, jax.Array) else x, out)
-        return _raise_for_failed_members(out, throw, system, batched_args, shared_args)
+def _placed(problem: BatchProblem, sharding: NamedSharding) -> BatchProblem:
+    """``problem`` on the devices of ``sharding``: batched arrays split along their leading
+    axis (padded to a multiple of the shards with copies of the last member), shared ones
+    replicated."""
+    pad = -problem.size % _num_shards(sharding)
+    replicated = NamedSharding(sharding.mesh, PartitionSpec())
 
-    # Members fail on their own (traj.failure per member); the batch raises once, below, naming
-    # the failed members, or not at all with throw=False.
-    concrete = is_concrete((q0, qd0, ts, batched_args, shared_args))
-    initial_check = None
-    if concrete and _checked_on_host(ts, options):
-        text = save_times_message(np.asarray(ts))
-        if text is not None:
-            raise ValueError(text)
-        checks = dataclasses.replace(checks, times=False)
-        if checks.initial_state:
-            initial_check = (np.asarray(ts)[0], float(checks.tolerance(q0.dtype)))
-            checks = dataclasses.replace(checks, initial_state=False)
-    run_kwargs = {**options, "checks": checks, "throw": False}
-    out, diagnostics = _run_batch(
-        system,
-        q0,
-        qd0,
-        ts,
-        batched_args,
-        shared_args,
-        0 if q0.ndim == 2 else None,
-        0 if qd0.ndim == 2 else None,
-        run_kwargs,
-        out_sharding,
-        initial_check,
+    def batched(x):
+        return jax.device_put(_pad(x, pad), sharding)
+
+    def shared(x):
+        return jax.device_put(x, replicated) if isinstance(x, jax.Array) else x
+
+    def either(x):
+        return cast(jax.Array, batched(x) if x.ndim == 2 else shared(x))
+
+    p = problem
+    return BatchProblem(
+        p.system,
+        either(p.q0),
+        either(p.qd0),
+        None if p.ts is None else either(p.ts),
+        jax.tree.map(batched, p.batched_args),
+        jax.tree.map(shared, p.shared_args),
+        p.size,
+        pad,
+        sharding,
     )
-    if concrete:  # compiled initial-state checks raise while we wait for the result
-        jax.block_until_ready(out.failure.code)
-    if pad:
-        out, diagnostics = jax.tree.map(
-            lambda x: x[:size] if isinstance(x, jax.Array) else x, (out, diagnostics)
-        )
-    if initial_check is not None:
-        checking.raise_for_initial_states(system, diagnostics, args, initial_check[1])
-    return _raise_for_failed_members(out, throw, system, batched_args, shared_args)
+
+
+def _default_method(problem: BatchProblem, options: SimulateOptions) -> AbstractBatchMethod:
+    """``method=None``: :class:`~jaxlag.Vmap` on CPU; on an accelerator :class:`~jaxlag.Ensemble`
+    for constant steps whose step divides the save intervals (the result equals the vmap one
+    to rounding), :class:`~jaxlag.Vmap` otherwise."""
+    if jax.default_backend() == "cpu":
+        return Vmap()
+    from ..experimental._ensemble.entry import ensemble_by_default
+
+    return Ensemble() if ensemble_by_default(problem, options) else Vmap()
 
 
 def _raise_for_failed_members(out: Trajectory, throw: bool, system, batched_args, shared_args) -> Trajectory:
@@ -428,17 +335,6 @@ def _raise_for_failed_members(out: Trajectory, throw: bool, system, batched_args
         # Several hosts: each process can read only its own rows; it raises for those.
         _raise_for_local_members(out.failure)
     return out
-
-
-def _checked_on_host(ts, options: dict) -> bool:
-    """Whether the batch's checks can run on the host: plain save times ``ts`` (no ``t0``,
-    ``t1``, ``saveat`` or ``dt0`` of another sign) and one process (every row readable)."""
-    if ts is None or any(options[k] is not None for k in ("t0", "t1", "saveat")):
-        return False
-    dt0 = options["dt0"]
-    if dt0 is not None and not (is_concrete(dt0) and float(dt0) >= 0):
-        return False
-    return jax.process_count() == 1
 
 
 def _raise_for_local_members(failure) -> None:

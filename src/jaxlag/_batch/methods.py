@@ -1,46 +1,57 @@
-"""How :func:`~jaxlag.simulate_batch` integrates a batch: ``method=jl.Vmap()`` or
-``method=jl.Ensemble(backend=...)`` (``None``: chosen automatically)."""
+"""How :func:`~jaxlag.simulate_batch` integrates a batch: the abstract method and the problem
+that every method receives (``method=None``: chosen by ``simulate_batch``)."""
 
-from __future__ import annotations
-
-from typing import Literal, get_args
+import abc
 
 import equinox as eqx
+import jax
+from jax.sharding import NamedSharding
+from jaxtyping import Array, Float, PyTree
 
-EnsembleBackend = Literal["auto", "xla", "pallas", "pallas-interpret"]
+from .._custom_types import Args
+from .._options import SimulateOptions
+from .._system import System
+from .._trajectory import Trajectory
+
+
+class BatchProblem(eqx.Module):
+    """A batch as :func:`~jaxlag.simulate_batch` prepared it: checked, placed on the devices
+    of ``sharding`` (``None``: one device) and padded with ``pad`` copies of the last member to
+    a multiple of the number of shards, ``size`` real members before the padding.
+
+    ``q0``, ``qd0``: ``(B, n)`` per member or ``(n,)`` shared; ``ts``: ``(T,)`` shared,
+    ``(B, T)`` per member, or ``None`` (``t0``/``t1``/``saveat`` among the options);
+    ``batched_args``: the ``args`` leaves with a leading batch axis, ``shared_args`` the others
+    (``eqx.combine`` gives one member's ``args``)."""
+
+    system: System
+    q0: Float[Array, "batch n"] | Float[Array, " n"]
+    qd0: Float[Array, "batch n"] | Float[Array, " n"]
+    ts: Float[Array, "batch times"] | Float[Array, " times"] | None
+    batched_args: Args
+    shared_args: Args
+    size: int = eqx.field(static=True)
+    pad: int = eqx.field(static=True)
+    sharding: NamedSharding | None = eqx.field(static=True)
+
+    def unpad(self, tree: PyTree) -> PyTree:
+        """``tree`` without the padded members (the leading axis of its arrays cut to ``size``)."""
+        if not self.pad:
+            return tree
+        return jax.tree.map(lambda x: x[: self.size] if isinstance(x, jax.Array) else x, tree)
 
 
 class AbstractBatchMethod(eqx.Module):
     """How :func:`~jaxlag.simulate_batch` integrates the batch: :class:`~jaxlag.Vmap` or
-    :class:`~jaxlag.Ensemble`. (``method=None`` picks one; see ``simulate_batch``.)"""
+    :class:`~jaxlag.Ensemble`. (``method=None`` picks one; see ``simulate_batch``.)
 
+    A method implements :meth:`simulate`; ``simulate_batch`` prepares the
+    :class:`BatchProblem` before and raises for the failed members after it."""
 
-class Vmap(AbstractBatchMethod):
-    """``jax.vmap`` of :func:`~jaxlag.simulate`: every option of ``simulate`` (events,
-    unilateral constraints, any diffrax solver, controller and adjoint), each member with its own
-    solver loop inside one batched loop that runs until the slowest member has finished."""
-
-
-class Ensemble(AbstractBatchMethod):
-    """One batched Runge–Kutta loop for the whole batch (:mod:`jaxlag._batch.ensemble`): explicit
-    Runge–Kutta solvers with a Butcher tableau (``diffrax.Tsit5()``, ``diffrax.Dopri5()``,
-    ``jl.RK4()``, ...), constant or PID steps, each member with its own step size when
-    adaptive; per-member save times ``ts`` of shape ``(B, T)`` are allowed.
-    Events, unilateral constraints and progress meters are not supported (a ``ValueError``
-    points to :class:`~jaxlag.Vmap`). Failed members are reported as :class:`~jaxlag.Vmap`
-    reports them: ``traj.failure`` and ``traj.result`` per member (a state that became
-    non-finite, a step size that collapsed, ``max_steps``), their unreached saves ``inf``, and
-    ``throw=True`` raises :class:`~jaxlag.SimulationError` naming the first failed member.
-
-    ``backend``: ``"xla"`` (the loop as XLA operations), ``"pallas"`` (one fused Pallas kernel,
-    constant steps; falls back to ``"xla"`` with a warning if the equations do not lower),
-    ``"pallas-interpret"`` (the kernel in Pallas's interpreter, for testing on CPU) or
-    ``"auto"`` (default: ``"xla"``; see the README for why).
-    """
-
-    backend: EnsembleBackend = eqx.field(static=True, default="auto")
-
-    def __check_init__(self):
-        if self.backend not in get_args(EnsembleBackend):
-            choices = ", ".join(repr(b) for b in get_args(EnsembleBackend))
-            raise ValueError(f"Ensemble backend must be one of {choices}; got {self.backend!r}.")
+    @abc.abstractmethod
+    def simulate(self, problem: BatchProblem, options: SimulateOptions) -> Trajectory:
+        """Every member of ``problem`` simulated with the options of :func:`~jaxlag.simulate`
+        given in ``options`` (those left out: ``simulate``'s defaults): a
+        :class:`~jaxlag.Trajectory` with a leading batch axis of ``problem.size`` members,
+        the padding dropped, whose failed members are recorded in ``failure`` (not raised).
+        Invalid input, including the initial states, raises here."""

@@ -1,10 +1,13 @@
 """Experimental pieces of jaxlag, with no stability promise (as ``equinox.internal``).
 
-The ensemble integrator's GPU kernel, written with ``jax.experimental.pallas``: the per-member
-equations of motion evaluated lane-wise (every array entry one column of the batch) inside a
-Pallas kernel. ``jl.simulate_batch`` uses it for ``jl.Ensemble(backend="pallas")``; it runs on CPU
-in Pallas's interpreter (``backend="pallas-interpret"``), which is how the tests check it.
+The ensemble integrator: :func:`simulate_ensemble` advances a whole batch as one explicit
+Runge–Kutta loop (``jl.simulate_batch(..., method=jl.Ensemble())`` runs it), and its GPU kernel,
+written with ``jax.experimental.pallas``: the per-member equations of motion evaluated
+lane-wise (every array entry one column of the batch) inside a Pallas kernel
+(``jl.Ensemble(backend="pallas")``); it runs on CPU in Pallas's interpreter
+(``backend="pallas-interpret"``), which is how the tests check it.
 """
 
-from .._batch.lanes import lanewise as lanewise
-from .._batch.pallas import integrate_pallas as integrate_pallas
+from ._ensemble.api import simulate_ensemble as simulate_ensemble
+from ._ensemble.lanes import lanewise as lanewise
+from ._ensemble.pallas import integrate_pallas as integrate_pallas

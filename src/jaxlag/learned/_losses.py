@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from .._batch.batch import simulate_batch
-from .._batch.ensemble import RK4
+from .._solver.rk4 import RK4
 from .._checks import Checks
 from .._custom_types import Args, RealScalarLike
 from .._mechanics import kkt as _kkt

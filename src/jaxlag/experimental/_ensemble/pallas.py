@@ -7,16 +7,18 @@ the projection of constrained systems) in a ``lax.fori_loop`` inside the kernel,
 the saved states. The state lives in memory as structure of arrays, ``(n, B)`` with the members
 along the last (lane) axis, so each coordinate of a block is one contiguous load.
 
-The right-hand side inside the kernel is the same :class:`~jaxlag._batch.ensemble.BatchedField` as in
-the XLA loop (the library's equations of motion, vmapped over the block): the arithmetic is
+The right-hand side inside the kernel is the same
+:class:`~jaxlag.experimental._ensemble.integrate.BatchedField` as in the XLA loop (the library's
+equations of motion, vmapped over the block): the arithmetic is
 identical, so results agree with the XLA loop to rounding. The kernel's work is traced to jaxprs
 first, so that constants the equations create or close over become kernel inputs (Pallas kernels
 may not capture arrays). Whether a given system's equations
 lower to a GPU kernel (Triton / Mosaic GPU) depends on the operations autodiff produced; when they
-do not, :func:`~jaxlag._batch.ensemble_entry.run_ensemble` catches the lowering error, warns and uses the
-XLA loop. When all members share their save times the kernel is *lane-wise*
-(:func:`_lanes_integrate`, :mod:`jaxlag._batch.lanes`): every state entry and parameter is a 1-D column
-and the step of one member is evaluated on columns as elementwise code, which is what the Triton
+do not, :func:`~jaxlag.experimental._ensemble.entry.integrate_batch` catches the lowering error,
+warns and uses the XLA loop. When all members share their save times the kernel is *lane-wise*
+(:func:`_lanes_integrate`, :mod:`jaxlag.experimental._ensemble.lanes`): every state entry and
+parameter is a 1-D column and the step of one member is evaluated on columns as elementwise code,
+which is what the Triton
 lowering accepts (checked with ``jax.export`` for CUDA, float64: double pendulum, constrained
 pendulum, knife edge); otherwise the kernel works on ``(block, n)`` arrays (Triton has no
 ``slice`` lowering for those). With ``interpret=True`` (``backend="pallas-interpret"``) the
@@ -36,7 +38,7 @@ import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton
 
-from .ensemble import constant_loop, rk_step, select
+from .integrate import constant_loop, rk_step, select
 from .lanes import constant, lanewise
 
 #: Members per Pallas program (a multiple of the 32-lane warp; 128 keeps registers in check).
@@ -216,8 +218,9 @@ def _kernel_integrate(field, settings, ts, y0, steps_per_interval, inner, unifor
 
 
 def _lanes_integrate(field, settings, ts, y0, inner, interpret, block):
-    """The kernel with lane-wise equations (:mod:`jaxlag._batch.lanes`): every state entry, parameter and
-    per-member constant is its own 1-D column of the batch, and the Runge–Kutta step of one
+    """The kernel with lane-wise equations (:mod:`jaxlag.experimental._ensemble.lanes`): every
+        state entry, parameter and per-member constant is its own 1-D column of the batch, and the
+    Runge–Kutta step of one
     member, traced once, is evaluated on columns as straight-line elementwise code. Needs the
     same save times and step count for every member (they are read as scalars in the kernel)."""
     tableau = settings.tableau
@@ -365,8 +368,9 @@ def _lanes_integrate(field, settings, ts, y0, inner, interpret, block):
 
 
 def integrate_pallas(field, settings, ts, y0, grid, interpret=False, block=None):
-    """Constant steps in one kernel; returns what :func:`~jaxlag._batch.ensemble.integrate_ensemble`
-    returns. Differentiable (the tangents are the XLA loop's, see the module docstring)."""
+    """Constant steps in one kernel; returns what
+        :func:`~jaxlag.experimental._ensemble.integrate.integrate_ensemble` returns. Differentiable
+    (the tangents are the XLA loop's, see the module docstring)."""
     steps_per_interval, inner, uniform, shared_times = grid
     block = BLOCK if block is None else block
     members, shared, rebuild = _split_field(field)

@@ -1,0 +1,66 @@
+"""``SimulateOptions``: the keyword options of :func:`~jaxlag.simulate`, written once.
+
+:func:`~jaxlag.simulate` spells them out as keywords with their defaults (its signature is where
+the defaults live, as ``diffrax.diffeqsolve``'s is); every entry point that runs ``simulate`` for
+its user (:func:`~jaxlag.simulate_batch`, the batch methods) takes them as
+``**options: Unpack[SimulateOptions]`` and forwards them untouched, so a new option of
+``simulate`` is added in two places: its signature and this ``TypedDict``.
+"""
+
+import inspect
+from collections.abc import Mapping, Sequence
+from types import MappingProxyType
+from typing import Any
+
+import diffrax
+from typing_extensions import TypedDict
+
+from ._adjoint import ForwardSensitivities
+from ._checks import Checks
+from ._custom_types import RealScalarLike
+from ._events import Event, Events
+from ._simulate import simulate
+from ._stabilization import Baumgarte, Projection
+
+__all__ = ["SimulateOptions", "default_option", "check_option_names"]
+
+
+class SimulateOptions(TypedDict, total=False):
+    """The options of :func:`~jaxlag.simulate` other than the problem ``(system, q0, qd0, ts,
+    args)``; each is optional, and one left out means ``simulate``'s default. See
+    :func:`~jaxlag.simulate` for their meaning."""
+
+    t0: RealScalarLike | None
+    t1: RealScalarLike | None
+    solver: diffrax.AbstractSolver | None
+    stepsize_controller: diffrax.AbstractStepSizeController | None
+    dt0: RealScalarLike | None
+    saveat: diffrax.SaveAt | None
+    max_steps: int | None
+    adjoint: diffrax.AbstractAdjoint | ForwardSensitivities | None
+    event: diffrax.Event | None
+    throw: bool
+    progress_meter: diffrax.AbstractProgressMeter | None
+    baumgarte: Baumgarte | None
+    projection: Projection | None
+    checks: Checks
+    events: Events | Event | Sequence[Event]
+
+
+# simulate's defaults, read from its signature (a name missing there fails here, at import).
+_DEFAULTS = MappingProxyType(
+    {name: inspect.signature(simulate).parameters[name].default for name in SimulateOptions.__annotations__}
+)
+
+
+def default_option(options: Mapping[str, object], name: str) -> Any:
+    """``options[name]``, or :func:`~jaxlag.simulate`'s default when it was not given."""
+    return options.get(name, _DEFAULTS[name])
+
+
+def check_option_names(options: Mapping[str, object], caller: str) -> None:
+    """A ``TypeError`` (as Python raises for a keyword) for a name that is not an option of
+    :func:`~jaxlag.simulate`."""
+    for name in options:
+        if name not in _DEFAULTS:
+            raise TypeError(f"{caller}() got an unexpected keyword argument {name!r}.")

@@ -1,0 +1,1 @@
+"""Private: no public API here (see jaxlag/experimental/__init__.py)."""

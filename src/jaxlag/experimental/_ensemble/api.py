@@ -1,0 +1,86 @@
+"""``jaxlag.experimental.simulate_ensemble``: the ensemble integrator's own entry point."""
+
+import diffrax
+from jax.sharding import Mesh, NamedSharding
+from jaxtyping import ArrayLike, Float, PyTree
+
+from ..._batch.batch import simulate_batch
+from ..._batch.ensemble import Ensemble, EnsembleBackend
+from ..._checks import Checks
+from ..._custom_types import Args, RealScalarLike
+from ..._stabilization import Baumgarte, Projection
+from ..._system import System
+from ..._trajectory import Trajectory
+
+
+def simulate_ensemble(
+    system: System,
+    q0: Float[ArrayLike, "*batch n"],
+    qd0: Float[ArrayLike, "*batch n"],
+    ts: Float[ArrayLike, "*batch times"] | None = None,
+    *,
+    args: Args = None,
+    args_axes: PyTree[int | None] = None,
+    sharding: str | Mesh | NamedSharding | None = None,
+    backend: EnsembleBackend = "auto",
+    t0: RealScalarLike | None = None,
+    t1: RealScalarLike | None = None,
+    solver: diffrax.AbstractSolver | None = None,
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    dt0: RealScalarLike | None = None,
+    saveat: diffrax.SaveAt | None = None,
+    max_steps: int = 2**16,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    throw: bool = True,
+    baumgarte: Baumgarte | None = None,
+    projection: Projection | None = Projection(),
+    checks: Checks = Checks(),
+) -> Trajectory:
+    r"""A batch integrated as one explicit Runge–Kutta loop whose state is the whole batch,
+    ``q, q̇`` of shape ``(B, n)``: each step is
+
+        k_i = f(t + c_i h, y + h Σ_{j<i} a_ij k_j),   y₁ = y + h Σ b_i k_i,   e = h Σ b̂_i k_i
+
+    with ``f(t, (q, q̇)) = (q̇, q̈)`` from ``M q̈ = F + Jᵀλ + Aᵀμ`` vmapped over the members and
+    ``(c, a, b, b̂)`` the Butcher tableau of ``solver`` (an explicit Runge–Kutta method:
+    ``diffrax.Tsit5()`` by default, ``diffrax.Dopri5()``, ``jl.RK4()``, ...), followed for
+    constrained systems by ``projection``. Equal to
+    ``jl.simulate_batch(..., method=jl.Ensemble(backend), ...)``.
+
+    **Arguments:** ``system``, ``q0``, ``qd0``, ``ts``, ``args``, ``args_axes`` and
+    ``sharding`` as for :func:`~jaxlag.simulate_batch` (``ts`` may also be per member,
+    ``(B, T)``); ``backend``: ``"xla"``, ``"pallas"`` (constant steps, one fused kernel),
+    ``"pallas-interpret"`` or ``"auto"`` (``"xla"``); the supported options of
+    :func:`~jaxlag.simulate`, with its defaults: ``stepsize_controller``
+    ``diffrax.ConstantStepSize()`` (with ``dt0``, concrete save times) or
+    ``diffrax.PIDController`` (each member its own step size), ``saveat`` at ``t1`` or at
+    given times only, ``adjoint`` ``diffrax.RecursiveCheckpointAdjoint()`` (reverse mode, the
+    default) or ``diffrax.ForwardMode()``. Events, unilateral constraints, friction and
+    progress meters are not supported: use :func:`~jaxlag.simulate_batch` with
+    ``method=jl.Vmap()``.
+
+    Returns a :class:`~jaxlag.Trajectory` with a leading batch axis; ``throw=True`` raises
+    :class:`~jaxlag.SimulationError` naming the first failed member.
+    """
+    return simulate_batch(
+        system,
+        q0,
+        qd0,
+        ts,
+        args=args,
+        args_axes=args_axes,
+        sharding=sharding,
+        method=Ensemble(backend),
+        t0=t0,
+        t1=t1,
+        solver=solver,
+        stepsize_controller=stepsize_controller,
+        dt0=dt0,
+        saveat=saveat,
+        max_steps=max_steps,
+        adjoint=adjoint,
+        throw=throw,
+        baumgarte=baumgarte,
+        projection=projection,
+        checks=checks,
+    )
