@@ -436,3 +436,22 @@ def test_too_many_segments_message_says_what_to_pass():
                 jl.simulate(OSCILLATOR, q0, jnp.zeros(1), TS10, events=jl.Events(event, max_segments=2)).q
             )
         )(jnp.ones(1))
+
+
+def test_event_kinds_are_an_enumeration_compared_by_name():
+    # The integer values of EventLog.kind are unchanged; the names are those of kinds().
+    assert [int(k) for k in jl.EventKind] == [-2, -1, 0, 1, 2, 3, 4, 5]
+    assert jl.EventKind.CONTACT.label == "contact"
+    kinds = jnp.asarray([jl.EventKind.RELEASE, jl.EventKind.END, jl.EventKind.NONE], jnp.int32)
+    assert bool(jax.jit(lambda k: k[0] == jl.EventKind.RELEASE)(kinds))
+    log = jl.EventLog(
+        time=jnp.zeros(3),
+        kind=kinds,
+        index=jnp.zeros(3, jnp.int32),
+        q=jnp.zeros((3, 1)),
+        qd=jnp.zeros((3, 1)),
+        active=jnp.zeros((3, 0), bool),
+        impulses=jnp.zeros((3, 0)),
+        count=jnp.asarray(1, jnp.int32),
+    )
+    assert log.kinds() == ["release", "end"]
