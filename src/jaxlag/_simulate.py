@@ -24,7 +24,9 @@ from ._conventions import as_array_leaves
 from ._mechanics.constant_mass import with_constant_mass
 from ._conventions import as_float_state, as_jax_array
 from ._custom_types import Args, Coordinates, RealScalarLike, SaveTimes, Velocities
-from ._events import Event, Events, as_events, solve_segments
+from ._events import Event, Events, as_events
+from ._segment_loop import solve_segments
+from ._simulation_inputs import SimulationInputs
 from ._vector_field import EquationsOfMotion
 from ._adjoint import (
     AbstractPushingRun,
@@ -197,29 +199,6 @@ def _solve(
     return _finish(system, fast, projection, solution, solution.ys, t0, t1, q0, qd0, args, max_steps)
 
 
-class SimulationInputs(eqx.Module):
-    """The inputs of one simulation, as :class:`_Run` receives them: a pytree whose inexact array
-    leaves are what ``jax.grad`` may differentiate (:mod:`jaxlag._adjoint`; the other leaves
-    are static). ``events``: the user conditions and the segmented integration's options (only
-    read when the run is segmented); ``event``: a diffrax event (plain solves only)."""
-
-    system: System
-    q0: Any
-    qd0: Any
-    t0: Any
-    t1: Any
-    ts: Any
-    dt0: Any
-    args: Any
-    saveat: diffrax.SaveAt
-    solver: diffrax.AbstractSolver
-    stepsize_controller: diffrax.AbstractStepSizeController
-    baumgarte: Baumgarte | None
-    projection: Projection | None
-    events: Events
-    event: diffrax.Event | None
-
-
 # The inputs that the solver steps see: the only ones the one-loop tangent solve may perturb.
 _STEPPED = frozenset({"system", "q0", "qd0", "args", "baumgarte", "projection"})
 
@@ -380,41 +359,7 @@ class _Run(AbstractPushingRun):
     def __call__(self, inputs: SimulationInputs, adjoint):
         i = inputs
         if self.segmented:
-            ts_out, q, qd, active, log, failure, stats, modes = solve_segments(
-                i.system,
-                i.q0,
-                i.qd0,
-                i.t0,
-                i.t1,
-                i.ts,
-                i.dt0,
-                i.args,
-                i.solver,
-                i.stepsize_controller,
-                self.max_steps,
-                adjoint,
-                self.progress_meter,
-                i.baumgarte,
-                i.projection,
-                i.events.conditions,
-                i.events.max_segments,
-                i.events.root_finder,
-                self.check,
-                self.tolerance,
-                i.events.zeno_time,
-            )
-            return Trajectory.from_states(
-                i.system,
-                ts_out,
-                q,
-                qd,
-                i.args,
-                stats=stats,
-                active=active,
-                events=log,
-                failure=failure,
-                modes=modes if i.system.friction else None,
-            )
+            return solve_segments(inputs=i, events=i.events, run=self, adjoint=adjoint)
         return _solve(
             i.system,
             i.q0,
