@@ -416,3 +416,21 @@ def test_solvers_with_an_error_estimate_or_constant_steps_are_accepted():
         stepsize_controller=ADAPTIVE,
     )  # fmt: skip
     np.testing.assert_allclose(halved.q[:, 0], jnp.cos(ts), rtol=0, atol=1e-6)
+
+
+def test_simulate_options_are_simulates_keywords():
+    """jl.SimulateOptions names every keyword option of jl.simulate (all but ``args``), and a
+    dict of them built once goes to simulate and simulate_batch alike."""
+    import inspect
+    import typing
+
+    keywords = {
+        p.name for p in inspect.signature(jl.simulate).parameters.values() if p.kind is p.KEYWORD_ONLY
+    }
+    assert set(typing.get_type_hints(jl.SimulateOptions)) == keywords - {"args"}
+    options: jl.SimulateOptions = {"stepsize_controller": diffrax.ConstantStepSize(), "dt0": 0.01}
+    args = {"g": 9.81, "l": 1.0}
+    q0s = jnp.array([[0.2], [0.4]])
+    batch = simulate_batch(PENDULUM, q0s, jnp.zeros(1), TS, args=args, **options)
+    one = jl.simulate(PENDULUM, q0s[1], jnp.zeros(1), TS, args=args, **options)
+    np.testing.assert_allclose(batch.q[1], one.q, rtol=0, atol=1e-13)

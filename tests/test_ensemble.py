@@ -562,3 +562,20 @@ def test_float32_batches_use_float32_defaults():
         ValueError, match=r"2 of 2 batch members failed \(first: member \[0\]\).*off the constraint"
     ):
         jl.simulate_batch(PENDULUM_XY, q32 * 1.01, qd32, ts32, **options)
+
+
+def test_experimental_entry_point_equals_the_method_object():
+    """jaxlag.experimental.simulate_ensemble is simulate_batch(method=jl.Ensemble(backend)):
+    the same numbers; options the loop does not have are refused by name."""
+    ts = jnp.linspace(0.0, 1.0, 5)
+    q0, qd0 = double_states(2)
+    options = dict(solver=jl.RK4(), stepsize_controller=CONSTANT, dt0=0.01)
+    direct = jl.experimental.simulate_ensemble(DOUBLE, q0, qd0, ts, backend="xla", **options)
+    method = jl.simulate_batch(DOUBLE, q0, qd0, ts, method=jl.Ensemble(backend="xla"), **options)
+    np.testing.assert_array_equal(direct.q, method.q)
+    with pytest.raises(ValueError, match=r"progress meters.*method=jl\.Vmap\(\)"):
+        jl.simulate_batch(
+            DOUBLE, q0, qd0, ts, method=jl.Ensemble(), progress_meter=diffrax.NoProgressMeter(), **options
+        )
+    with pytest.raises(TypeError, match="unexpected keyword"):
+        jl.experimental.simulate_ensemble(DOUBLE, q0, qd0, ts, events=jl.Events(), **options)  # pyright: ignore[reportCallIssue]
