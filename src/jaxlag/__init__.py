@@ -41,17 +41,16 @@ from ._events import (
 )
 from ._mechanics.friction import Coulomb as Coulomb
 from ._mechanics.impacts import Unilateral as Unilateral
-from ._fit import (
+from ._fit.data import Experiment as Experiment
+from ._fit.fit import fit as fit, least_squares_loss as least_squares_loss
+from ._fit.options import (
     Bounded as Bounded,
-    Experiment as Experiment,
-    FitResult as FitResult,
     FitWarning as FitWarning,
     MultiStart as MultiStart,
     Positive as Positive,
     Shooting as Shooting,
-    fit as fit,
-    least_squares_loss as least_squares_loss,
 )
+from ._fit.statistics import FitResult as FitResult
 from ._options import SimulateOptions as SimulateOptions
 from ._simulate import simulate as simulate
 from ._solver.rk4 import RK4 as RK4

@@ -1,0 +1,287 @@
+r"""System identification: fit parameters (and initial states) to observed trajectories.
+
+The model of experiment ``e`` at save time ``t_i`` is ``y_e(t_i) = observe(q(t_i), q̇(t_i), t_i, args)``
+where ``(q, q̇)`` comes from :func:`~jaxlag.simulate` with ``args = {**fixed_args, **params}``.
+The fit minimizes the least-squares loss
+
+    ℓ(θ) = ½ Σ_{e,i,k} r_{eik}²,     r = (y_model − y_observed) / σ
+
+over the free parameters ``θ`` (optionally through a reparameterization, e.g. ``θ = exp(u)`` for
+positive parameters), where NaN observations are masked out (they contribute no residual).
+
+Two kinds of optimizer (``optimizer=``):
+
+* an optimistix Gauss–Newton-type least-squares solver (``optx.LevenbergMarquardt``, the default,
+  ``optx.GaussNewton``, ``optx.Dogleg``, ``optx.IndirectLevenbergMarquardt``: the subclasses of
+  ``optx.AbstractGaussNewton``), which carries its own ``rtol``/``atol``. The Jacobian of the
+  residuals is built in forward mode (``diffrax.ForwardMode``), one tangent per parameter, which
+  for a handful of parameters is far cheaper than reverse mode.
+* any ``optax.GradientTransformation``: gradient descent on ``ℓ`` with ``jax.value_and_grad``
+  through the simulation (the default :class:`~jaxlag.ForwardSensitivities`: forward
+  sensitivities for up to 10 free scalars, else ``diffrax.RecursiveCheckpointAdjoint``).
+
+Standard errors come from the Gauss–Newton approximation at the optimum: with the Jacobian
+``J = ∂r/∂θ`` in physical parameters, ``Cov = σ̂² (JᵀJ)⁻¹``, where ``σ̂² = |r|²/(N − p)`` is
+estimated from the residuals unless ``noise_std`` is given (then ``Cov = (JᵀJ)⁻¹``). The
+inverse is rank-revealing (an SVD of ``J`` with its columns scaled to unit norm, singular
+values below ``√ε · s_max`` dropped): a parameter along a direction the data cannot determine,
+or one that does not affect the residuals, gets an infinite standard error, its name in
+``FitResult.undetermined`` / ``FitResult.insensitive``, and a :class:`FitWarning` that says
+which combination is determined (``only g/l is determined by the data``). The fit also warns
+when a parameter ends at a :class:`Bounded` bound, and, with ``noise_std`` given, when the
+reduced χ² exceeds ``1 + 5 √(2/(N − p))`` (five standard deviations of the χ² distribution
+above its mean: a local minimum, or a model that does not describe the data).
+
+Chaotic or long trajectories: ``shooting=Shooting(segments=S)`` splits each experiment into
+``S`` segments, each starting from its own free state, and adds continuity residuals
+``w (x_end(segment k) − x_start(segment k+1))`` (multiple shooting).
+"""
+
+import warnings
+from collections.abc import Callable, Sequence
+from typing import cast
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optimistix as optx
+from jaxtyping import ArrayLike, Bool
+
+from .. import _errors as failures
+from .._adjoint import ForwardSensitivities
+from .._conventions import wrap_state_function
+from .._custom_types import Scalar
+from .._misc import is_concrete
+from .._stabilization import Baumgarte, Projection
+from .._system import System
+from .checks import check_observations, check_optimizer, check_options, check_starts, initial_mask
+from .data import Data, Experiment, segment_grid, stack
+from .loops import least_squares_loop, optax_loop
+from .model import Model, ParamSpec, Problem, guess_states, unconstrained
+from .options import Bounded, FitWarning, MultiStart, Positive, Shooting
+from .statistics import FitResult, fit_result
+
+
+def _observe_coordinates(q, qd):
+    return q
+
+
+def fit(
+    system: System,
+    params: dict[str, ArrayLike] | MultiStart,
+    experiments: Experiment | Sequence[Experiment],
+    *,
+    observe: Callable | None = None,
+    args: dict | None = None,
+    transforms: dict[str, Positive | Bounded] | None = None,
+    optimizer: optx.AbstractLeastSquaresSolver | optax.GradientTransformation = optx.LevenbergMarquardt(
+        rtol=1e-10, atol=1e-10
+    ),
+    max_steps: int = 100,
+    noise_std: float | None = None,
+    estimate_initial_state: bool | tuple[Bool[ArrayLike, " n"], Bool[ArrayLike, " n"]] = False,
+    shooting: Shooting = Shooting(),
+    solver: diffrax.AbstractSolver = diffrax.Tsit5(),
+    stepsize_controller: diffrax.AbstractStepSizeController = diffrax.PIDController(rtol=1e-10, atol=1e-10),
+    dt0: float | None = None,
+    max_solver_steps: int = 16384,
+    projection: Projection | None = Projection(),
+    baumgarte: Baumgarte | None = None,
+    progress: bool = False,
+) -> FitResult:
+    """Fit ``params`` of ``system`` to ``experiments`` by least squares.
+
+    **Arguments:**
+
+    - ``system``: the :class:`~jaxlag.System` (constraints, dissipation and forces included).
+    - ``params``: dict of free parameters with their starting values, or a :class:`MultiStart`
+      of several starting points (the best fit is returned).
+    - ``experiments``: an :class:`Experiment` or a list of them (equal shapes; batched by vmap).
+    - ``observe``: ``observe(q, qd, [t], [args]) -> (k,)``, what was measured (default: ``q``).
+      It matters: for a pendulum ``θ(t)`` depends only on ``g/l``, while the bob's Cartesian
+      position ``l (sin θ, −cos θ)`` identifies ``g`` and ``l`` separately.
+    - ``args``: fixed parameters, merged with ``params`` into the ``args`` the system sees.
+    - ``transforms``: per-parameter :class:`Positive` / :class:`Bounded` reparameterizations.
+    - ``optimizer``: an optimistix least-squares solver of the Gauss–Newton family (a subclass
+      of ``optx.AbstractGaussNewton``: ``optx.LevenbergMarquardt`` (default, ``rtol = atol =
+      1e-10``), ``optx.GaussNewton``, ``optx.Dogleg``, ``optx.IndirectLevenbergMarquardt``),
+      whose ``rtol``/``atol`` are the fit's tolerances; or an ``optax.GradientTransformation``
+      (gradient descent on the loss). Other optimistix solvers are refused (``TypeError``): the
+      fit steps the solver on a linearization of the residuals, which needs its Gauss–Newton
+      state.
+    - ``max_steps``: the most optimizer steps.
+    - ``noise_std``: known observation noise σ; if None it is estimated from the residuals.
+    - ``estimate_initial_state``: also fit each experiment's ``(q0, qd0)`` (``True``), or only
+      some entries: a pair of boolean masks ``(q_mask, qd_mask)`` of shape (n,) each, True =
+      estimated (the same entries in every experiment); the others stay at the experiment's
+      ``q0``/``qd0``, which are then known values. E.g. ``(jnp.array([True]),
+      jnp.array([False]))``: θ0 free, θ̇0 known.
+    - ``shooting``: a :class:`Shooting` (segments, continuity weight, starting guesses of the
+      segment states, periodic coordinates); the default ``Shooting()`` is single shooting.
+    - ``solver``, ``stepsize_controller``, ``dt0``, ``projection``, ``baumgarte``: passed to
+      :func:`~jaxlag.simulate`; ``max_solver_steps`` is its ``max_steps`` (the most integrator
+      steps of one simulation).
+    - ``progress``: show a tqdm progress bar (``pip install tqdm``).
+
+    Returns a :class:`FitResult`.
+    """
+    if isinstance(params, MultiStart):
+        options = dict(
+            observe=observe, args=args, transforms=transforms, optimizer=optimizer,
+            max_steps=max_steps, noise_std=noise_std, estimate_initial_state=estimate_initial_state,
+            shooting=shooting, solver=solver, stepsize_controller=stepsize_controller, dt0=dt0,
+            max_solver_steps=max_solver_steps, projection=projection, baumgarte=baumgarte,
+            progress=progress,
+        )  # fmt: skip
+        return _multi_start(system, params, experiments, options)
+    check_optimizer(optimizer)
+    simulation = dict(
+        solver=solver, stepsize_controller=stepsize_controller, max_steps=int(max_solver_steps), dt0=dt0,
+        projection=projection, baumgarte=baumgarte,
+    )  # fmt: skip
+    problem = _problem(
+        system, params, experiments, observe, args, dict(transforms or {}), noise_std, estimate_initial_state,
+        shooting, simulation,
+    )  # fmt: skip
+    if isinstance(optimizer, optx.AbstractGaussNewton):
+        search = least_squares_loop(optimizer, problem, max_steps, progress)
+    else:
+        search = optax_loop(cast(optax.GradientTransformation, optimizer), problem, max_steps, progress)
+    return fit_result(problem, search, noise_std)
+
+
+def _problem(
+    system, params, experiments, observe, args, transforms, noise_std, estimate, shooting, simulation
+) -> Problem:
+    """The prologue of :func:`fit`: its arguments checked, the :class:`Model` built, the data and
+    the starting free variables (unconstrained parameters, free segment states) ready."""
+    batch = stack(experiments)
+    check_options(transforms, params, shooting)
+    observe = wrap_state_function(observe or _observe_coordinates, "observation function")
+    real = jax.dtypes.canonicalize_dtype(float)  # on the host: no eager device conversions
+    fixed = {k: np.asarray(v, real) if isinstance(v, (int, float)) else v for k, v in (args or {}).items()}
+    params = {k: np.asarray(v, real) for k, v in params.items()}
+    check_starts(params, transforms)
+    check_observations(observe, batch, {**fixed, **params})
+    mask = initial_mask(estimate, batch.q0.shape[-1])
+    model = Model(
+        system,
+        observe,
+        transforms,
+        ParamSpec(tuple(params), tuple(jnp.shape(v) for v in params.values())),
+        segments=int(shooting.segments),
+        estimate_initial_state=mask is not None or estimate is True,
+        initial_mask=mask,
+        periodic=shooting.periodic_coordinates,
+        **simulation,
+    )
+    ts_seg, starts = segment_grid(batch.ts, model.segments)
+    segment_states = shooting.states
+    if segment_states is None and model.segments > 1:
+        segment_states = guess_states(model, batch.ts, batch.q0, batch.qd0, {**fixed, **params}, starts)
+    elif segment_states is None:
+        segment_states = (batch.q0[:, None], batch.qd0[:, None])
+    segment_states = tuple(np.asarray(s, batch.q0.dtype) for s in segment_states)
+    expected = (batch.ts.shape[0], model.segments, batch.q0.shape[-1])
+    if segment_states[0].shape != expected or segment_states[1].shape != expected:
+        raise ValueError(
+            f"Shooting(states=(q, qd)) must have shape {expected} each (experiments, segments, "
+            f"coordinates); got {segment_states[0].shape} and {segment_states[1].shape}."
+        )
+    noise = 1.0 if noise_std is None else float(noise_std)
+    data = Data(fixed, batch.observations, noise, ts_seg, float(shooting.continuity_weight))
+    free_states, fixed_states = model.split(segment_states)
+    return Problem(model, data, {"params": unconstrained(model, params), **free_states}, fixed_states)
+
+
+def _multi_start(system, starts: MultiStart, experiments, options) -> FitResult:
+    """:func:`fit` from each start of ``starts`` in turn; the best result, with all of them."""
+    count = next(iter(np.shape(v)[0] for v in starts.starts.values()))
+    results, losses, error = [], [], None
+    for k in range(count):
+        start = {name: np.asarray(value)[k] for name, value in starts.starts.items()}
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FitWarning)
+            try:
+                result = fit(system, start, experiments, **options)
+            except (FloatingPointError, failures.SimulationError) as caught:
+                result, error = None, caught
+        results.append(result)
+        losses.append(np.inf if result is None else float(result.loss_history[-1]))
+    best = int(np.argmin(losses))
+    result = results[best]
+    if result is None:
+        raise ValueError(f"MultiStart: every one of the {count} fits failed; the last: {error}") from error
+    for message in result.warnings:
+        warnings.warn(f"jl.fit: {message}.", FitWarning, stacklevel=3)
+    names = tuple(result.params)
+    start_params = {
+        name: jnp.stack(
+            [
+                jnp.asarray(r.params[name]) if r is not None else jnp.full_like(result.params[name], jnp.nan)
+                for r in results
+            ]
+        )
+        for name in names
+    }
+    return eqx.tree_at(
+        lambda r: (r.start_losses, r.start_params),
+        result,
+        (np.asarray(losses), start_params),
+        is_leaf=lambda x: x is None,
+    )
+
+
+def least_squares_loss(
+    system: System,
+    params: dict[str, ArrayLike],
+    experiments: Experiment | Sequence[Experiment],
+    *,
+    observe: Callable | None = None,
+    args: dict | None = None,
+    noise_std: float = 1.0,
+    solver: diffrax.AbstractSolver = diffrax.Tsit5(),
+    stepsize_controller: diffrax.AbstractStepSizeController = diffrax.PIDController(rtol=1e-10, atol=1e-10),
+    dt0: float | None = None,
+    max_solver_steps: int = 2**16,
+    adjoint: diffrax.AbstractAdjoint | ForwardSensitivities = ForwardSensitivities(),
+    projection: Projection | None = Projection(),
+    baumgarte: Baumgarte | None = None,
+) -> Scalar:
+    """The fit's loss ``½ Σ r²`` at physical ``params`` (single shooting, known initial states).
+
+    Differentiable with ``jax.grad`` (the default ``adjoint``, as in :func:`~jaxlag.simulate`)
+    and ``jax.jacfwd`` (pass ``adjoint=diffrax.ForwardMode()``); useful to check gradients or to
+    drive your own optimizer. ``solver``, ``stepsize_controller``, ``dt0``, ``adjoint``,
+    ``projection`` and ``baumgarte`` are passed to :func:`~jaxlag.simulate`, and
+    ``max_solver_steps`` as its ``max_steps``.
+    """
+    batch = stack(experiments)
+    observe = wrap_state_function(observe or _observe_coordinates, "observation function")
+    spec = ParamSpec(tuple(params), tuple(jnp.shape(v) for v in params.values()))
+    model = Model(
+        system,
+        observe,
+        {},
+        spec,
+        segments=1,
+        estimate_initial_state=False,
+        solver=solver,
+        stepsize_controller=stepsize_controller,
+        max_steps=int(max_solver_steps),
+        dt0=dt0,
+        projection=projection,
+        baumgarte=baumgarte,
+    )
+    data = Data(dict(args or {}), batch.observations, noise_std, batch.ts[:, None, :], 0.0)
+    if is_concrete(batch.observations) and not np.any(np.isfinite(np.asarray(batch.observations))):
+        raise ValueError(
+            "least_squares_loss: no observation is finite (all are NaN or inf): the loss would be "
+            "0, a perfect fit of no data."
+        )
+    free = {"params": spec.ravel({k: jnp.asarray(v, float) for k, v in params.items()})}
+    r = model.residuals(free, data, (batch.q0[:, None], batch.qd0[:, None]), adjoint)
+    return 0.5 * jnp.sum(r**2)

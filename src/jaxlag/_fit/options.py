@@ -1,0 +1,131 @@
+"""The options of :func:`~jaxlag.fit` as Modules: the reparameterizations of the parameters
+(``θ = to_physical(u)``, the optimizer works on ``u``), :class:`Shooting`, :class:`MultiStart`,
+and :class:`FitWarning`."""
+
+import operator
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from .._custom_types import RealScalarLike
+from .._misc import is_concrete
+
+
+#: ``q`` or ``q̇`` of every shooting segment's starting state, one row per experiment and segment.
+SegmentStates = Float[Array, "experiments segments n"]
+
+
+# ----------------------------------------------------------------------------- reparameterization
+class Identity(eqx.Module):
+    """No reparameterization: ``θ = u``."""
+
+    def to_physical(self, u):
+        return u
+
+    def to_unconstrained(self, p):
+        return p
+
+
+class Positive(eqx.Module):
+    """Positive parameter: ``θ = exp(u)``."""
+
+    def to_physical(self, u: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
+        return jnp.exp(u)
+
+    def to_unconstrained(self, p: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
+        return jnp.log(p)
+
+
+class Bounded(eqx.Module):
+    """Parameter in ``(lower, upper)``: ``θ = lower + (upper − lower) sigmoid(u)``."""
+
+    lower: float
+    upper: float
+
+    def to_physical(self, u: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
+        return self.lower + (self.upper - self.lower) * jax.nn.sigmoid(u)
+
+    def to_unconstrained(self, p: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
+        s = (p - self.lower) / (self.upper - self.lower)
+        return jnp.log(s) - jnp.log1p(-s)
+
+
+# ----------------------------------------------------------------------------- options
+def _index_tuple(indices) -> tuple:
+    return tuple(operator.index(i) for i in indices)  # ints only: a float index is a TypeError
+
+
+def _state_pair(states):
+    return None if states is None else tuple(states)
+
+
+class Shooting(eqx.Module):
+    """Multiple shooting, the ``shooting=`` option of :func:`fit`.
+
+    - ``segments``: each experiment is split into this many segments (it must divide
+      ``len(ts) − 1``; segments share their boundary save times), each starting from its own
+      free state. ``1`` (the default) is single shooting.
+    - ``continuity_weight``: the weight ``w > 0`` of the continuity residuals
+      ``w (x_end(segment k) − x_start(segment k+1))``.
+    - ``states``: optional ``(q, qd)`` of shape (E, S, n) each, the starting guesses of the
+      segment states (default: a simulation with the starting parameters).
+    - ``periodic_coordinates``: indices of angle coordinates whose continuity gaps are taken
+      modulo 2π (so segment states may be given in any branch, e.g. from inverse kinematics).
+    """
+
+    segments: int = 1
+    continuity_weight: RealScalarLike = 10.0
+    states: (
+        tuple[Float[ArrayLike, "experiments segments n"], Float[ArrayLike, "experiments segments n"]] | None
+    ) = eqx.field(default=None, converter=_state_pair)
+    periodic_coordinates: tuple[int, ...] = eqx.field(default=(), converter=_index_tuple)
+
+    def __check_init__(self):
+        if isinstance(self.segments, bool) or not isinstance(self.segments, (int, np.integer)):
+            raise TypeError(f"Shooting(segments=...) must be an int; got {self.segments!r}.")
+        if self.segments < 1:
+            raise ValueError(
+                f"Shooting(segments={self.segments}): the number of shooting segments must be at "
+                "least 1 (1 is single shooting)."
+            )
+        if is_concrete(self.continuity_weight) and not np.all(np.asarray(self.continuity_weight) > 0):
+            raise ValueError(
+                f"Shooting(continuity_weight={self.continuity_weight}): the weight of the continuity "
+                "residuals must be positive."
+            )
+        if self.states is not None and len(self.states) != 2:
+            raise ValueError(
+                "Shooting(states=...) must be a pair (q, qd) of arrays of shape (E, S, n): "
+                f"got {len(self.states)} items."
+            )
+
+
+class MultiStart(eqx.Module):
+    """Several starting points for :func:`fit`: pass ``params=jl.MultiStart({"g": [5.0, 10.0,
+    20.0], "l": [0.5, 1.0, 2.0]})``. Every leaf has a leading axis of length K (the number of
+    starts; a vector parameter of length n is given as (K, n)). The fits run one after the other
+    (they share the compiled programs: only the first compiles); the result is the fit with the
+    lowest final loss, with every start's final loss and parameters in
+    :attr:`FitResult.start_losses` / :attr:`FitResult.start_params`. A start whose fit fails
+    (diverges or its simulation fails) gets loss ``inf``; only the best fit's warnings are issued.
+    """
+
+    starts: dict[str, Float[ArrayLike, " starts *shape"]]
+
+    def __check_init__(self):
+        sizes = {k: np.shape(v)[0] if np.ndim(v) else None for k, v in self.starts.items()}
+        if not sizes or None in sizes.values() or len(set(sizes.values())) != 1:
+            raise ValueError(
+                "MultiStart needs every parameter with the same leading axis (one entry per start); "
+                f"got leading sizes {sizes}."
+            )
+
+
+class FitWarning(UserWarning):
+    """What :func:`fit` warns about: parameters the data cannot determine or that do not affect
+    the residuals, a parameter ending at a bound, a fit far worse than the noise. Filter it with
+    ``warnings.simplefilter("ignore", jl.FitWarning)``; the same texts are in
+    :attr:`FitResult.warnings`."""
