@@ -17,8 +17,6 @@ The result is the same arithmetic as the vmapped function, written as straight-l
 columns. Primitives outside this set raise :class:`NotImplementedError` (the caller falls back).
 """
 
-from __future__ import annotations
-
 import functools
 import operator
 from typing import Any

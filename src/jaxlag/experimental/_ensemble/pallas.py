@@ -28,8 +28,6 @@ Derivatives: the kernel is a ``jax.custom_jvp`` whose tangent rule differentiate
 (the same discrete scheme), so ``jax.jvp``/``jax.grad`` work and give the XLA loop's derivatives.
 """
 
-from __future__ import annotations
-
 import equinox as eqx
 import jax
 import jax.core
