@@ -17,6 +17,7 @@ singular values of ``[J; A]``, computed by NumPy.
 
 from __future__ import annotations
 
+import abc
 import functools as ft
 
 import equinox as eqx
@@ -24,15 +25,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.typing import DTypeLike
+from jaxtyping import Array, Float, PyTree
 
 from . import _compile as compilation
-from ._errors import batch_prefix, failed_members, member
+from ._custom_types import Args
+from ._diagnosis import batch_prefix, failed_members, member
 from ._mechanics import constraints as _constraints
 from ._mechanics.kkt import accelerations_and_multipliers
 from ._mechanics.lagrangian import mass_matrix
 from ._mechanics.mass_solve import independent_rows, pivots_pass
 from ._misc import is_concrete
-from .coordinates import body_diagnostics, check_bodies, raise_for_bodies
 from ._tolerances import (
     CONSTRAINT_RCOND,
     MASS_RCOND,
@@ -78,6 +80,60 @@ class Checks(eqx.Module):
         if self.constraint_tolerance is None:
             return default_constraint_tolerance(dtype)
         return self.constraint_tolerance
+
+
+# ----------------------------------------------------------------------------- the Lagrangian's own checks
+class AbstractLagrangianChecks(abc.ABC):
+    """Checks that a Lagrangian carries for its own parameters, run with the initial-state check.
+
+    The hook by which a Lagrangian built by an add-on adds checks that only it can make, without
+    the core importing the add-on: :func:`jaxlag.coordinates.lagrangian_from_positions` returns a
+    Lagrangian that implements this interface and checks its bodies (masses, inertias, the pose
+    ``R(q0)``, gimbal lock). ``System.lagrangian.fn`` is asked (:func:`lagrangian_checks`); a
+    plain function has no checks of its own and gets :class:`NoLagrangianChecks`. The three
+    methods are the three ways a check runs: eagerly or compiled in a program
+    (:meth:`check_initial_state`), or as values that a batch program returns to the host
+    (:meth:`initial_state_diagnostics`, then :meth:`raise_for_diagnostics`).
+    """
+
+    @abc.abstractmethod
+    def check_initial_state(
+        self, system, q: Float[Array, " n"], qd: Float[Array, " n"], t, args: Args
+    ) -> Float[Array, " n"]:
+        """Check at the initial state: concrete values raise ``ValueError`` with the numbers;
+        traced ones return ``q`` carrying ``eqx.branched_error_if`` (static messages)."""
+
+    @abc.abstractmethod
+    def initial_state_diagnostics(
+        self, system, q: Float[Array, " n"], qd: Float[Array, " n"], t, args: Args
+    ) -> PyTree | None:
+        """The checks of :meth:`check_initial_state` as values, traceable and without a callback,
+        or ``None`` when there is nothing to check."""
+
+    @abc.abstractmethod
+    def raise_for_diagnostics(self, system, diagnostics: PyTree | None, q) -> None:
+        """Raise ``ValueError`` with the numbers for the first batch member whose
+        :meth:`initial_state_diagnostics` fail (``diagnostics`` and ``q`` with or without a
+        leading batch axis)."""
+
+
+class NoLagrangianChecks(AbstractLagrangianChecks):
+    """A Lagrangian with no checks of its own (a plain function): every method does nothing."""
+
+    def check_initial_state(self, system, q, qd, t, args):
+        return q
+
+    def initial_state_diagnostics(self, system, q, qd, t, args):
+        return None
+
+    def raise_for_diagnostics(self, system, diagnostics, q):
+        return None
+
+
+def lagrangian_checks(system) -> AbstractLagrangianChecks:
+    """The checks that ``system``'s Lagrangian carries, or :class:`NoLagrangianChecks`."""
+    fn = system.lagrangian.fn
+    return fn if isinstance(fn, AbstractLagrangianChecks) else NoLagrangianChecks()
 
 
 def initial_activity(system, q, t, args, tolerance):
@@ -481,7 +537,8 @@ def validate_initial_state(system, q, qd, t, args, tolerance: float | None):
     if tolerance is None:
         tolerance = default_constraint_tolerance(jnp.result_type(q))
     static = _Static(tuple(system.unilateral), float(tolerance), tuple(_inexact_names(args)))
-    q = check_bodies(system, q, qd, t, args)  # rigid bodies: mass, inertia, R(q0), gimbal lock
+    # The Lagrangian's own checks (rigid bodies: mass, inertia, R(q0), gimbal lock) come first.
+    q = lagrangian_checks(system).check_initial_state(system, q, qd, t, args)
     if is_concrete((q, qd, t, args)):
         host = _diagnostics_on_host(system, q, qd, t, args, tolerance)
         if host is not None:
@@ -509,14 +566,16 @@ def initial_state_diagnostics(system, q, qd, t, args, tolerance):
     """``(values, failures)`` of the initial-state check as values (traceable, no callback):
     for programs that return their checks to the host (:func:`raise_for_initial_states`)."""
     d, fail = _diagnostics(system, q, qd, t, args, tolerance)
-    return dict(d, q=q, qd=qd, bodies=body_diagnostics(system, q, qd, t, args)), fail
+    own = lagrangian_checks(system).initial_state_diagnostics(system, q, qd, t, args)
+    return dict(d, q=q, qd=qd, lagrangian=own), fail
 
 
 def raise_for_initial_states(system, diagnostics, args, tolerance) -> None:
     """Raise ``ValueError`` on the host for the first failing member of (batched)
     :func:`initial_state_diagnostics`, with the message of :func:`validate_initial_state`."""
     d, fail = jax.device_get(diagnostics)
-    raise_for_bodies(system, d.get("bodies"), d["q"])  # rigid bodies first, as validate_initial_state
+    # The Lagrangian's own checks first, as in validate_initial_state.
+    lagrangian_checks(system).raise_for_diagnostics(system, d.get("lagrangian"), d["q"])
     static = _Static(tuple(system.unilateral), float(tolerance), tuple(_inexact_names(args)))
     text = _batched_initial_message(static, (d, fail))
     if text is not None:
@@ -645,7 +704,7 @@ def check_state_result(system, what: str, out, q, qd, t, args):
 
     tolerance = default_constraint_tolerance(jnp.result_type(q))
     static = _Static(tuple(system.unilateral), tolerance, tuple(_inexact_names(args)))
-    q = check_bodies(system, q, qd, t, args)
+    q = lagrangian_checks(system).check_initial_state(system, q, qd, t, args)
     host = None
     if is_concrete((out, q, qd, t, args)):
         host = _diagnostics_on_host(system, q, qd, t, args, tolerance)

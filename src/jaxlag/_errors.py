@@ -1,61 +1,68 @@
-r"""Run-time failures of a simulation: detected where they happen, reported with the numbers.
+r"""Run-time failures of a simulation: the results enumeration, the record and the compiled check.
 
 Three things can stop an integration after the initial state has passed its checks
 (:mod:`jaxlag._checks`):
 
-* **non-finite equations of motion** (code 1): a step produces NaN/inf (``q**1.5`` of a negative
-  coordinate, a mass matrix that becomes exactly singular, a NaN that a force function returns)
-  and no smaller step helps;
-* **the step size collapses** (code 5): steps are rejected down to round-off of ``t`` although
-  every trial state is finite, the signature of a finite-time singularity (``M`` becoming
-  singular, a velocity blowing up);
-* **``max_steps``** (code 2) and **``max_segments``** (code 4) are reached, or diffrax reports
-  another failure (code 3).
+* **non-finite equations of motion** (:attr:`FailureCode.NONFINITE`): a step produces NaN/inf
+  (``q**1.5`` of a negative coordinate, a mass matrix that becomes exactly singular, a NaN that
+  a force function returns) and no smaller step helps;
+* **the step size collapses** (:attr:`FailureCode.STEP_SIZE_COLLAPSED`): steps are rejected down
+  to round-off of ``t`` although every trial state is finite, the signature of a finite-time
+  singularity (``M`` becoming singular, a velocity blowing up);
+* **``max_steps``** (:attr:`FailureCode.MAX_STEPS`) and **``max_segments``**
+  (:attr:`FailureCode.MAX_SEGMENTS`) are reached, or diffrax reports another failure
+  (:attr:`FailureCode.SOLVER`).
 
 Detection costs a few scalar operations per step: the user's step-size controller is wrapped in
-:class:`FiniteStepGuard`, which ends the solve (diffrax result ``dt_min_reached``) as soon as a
-step is non-finite and cannot be shrunk further (at once for a constant step size), and which
-carries the time reached, the last step size and the last accepted state in its state. Without
-it an adaptive controller rejects NaN steps by shrinking ``dt`` until ``t + dt == t`` and then
-spins until ``max_steps`` (65,536 wasted steps and the wrong message).
+:class:`~jaxlag._solver.guard.FiniteStepGuard`, which ends the solve (diffrax result
+``dt_min_reached``) as soon as a step is non-finite and cannot be shrunk further (at once for a
+constant step size), and which carries the time reached, the last step size and the last
+accepted state in its state. Without it an adaptive controller rejects NaN steps by shrinking
+``dt`` until ``t + dt == t`` and then spins until ``max_steps`` (65,536 wasted steps and the
+wrong message).
 
 Every simulation returns a :class:`Failure` record in ``Trajectory.failure``; ``simulate`` then
 raises :class:`SimulationError` (``throw=True``, the default):
 
 * called eagerly (concrete inputs), after the compiled call, synchronously on every backend, with
-  the numbers and a diagnosis of the failing state (which quantity is non-finite: ``L``, ``M``,
-  ``F``, constraints or accelerations; the eigenvalues of ``M``; the steps that would be needed);
+  the numbers and a diagnosis of the failing state (:mod:`jaxlag._diagnosis`: which quantity is
+  non-finite, the eigenvalues of ``M``, the steps that would be needed);
 * inside a transformation (``jit``, ``vmap``, ``grad``), from the compiled program by
-  ``eqx.branched_error_if`` with the static message of the cause (:data:`RESULT_MESSAGES`); the
-  numbers stay in the returned record. With ``throw=False`` nothing is raised and
-  ``traj.raise_if_failed()`` raises the full message, with the numbers, later and eagerly.
+  :func:`error_if_failed` (``eqx.branched_error_if``) with the static
+  :attr:`FailureCode.message` of the cause; the numbers stay in the returned record. With
+  ``throw=False`` nothing is raised and ``traj.raise_if_failed()`` raises the full message, with
+  the numbers, later and eagerly.
 """
 
-from __future__ import annotations
-
 import enum
-from typing import Any, NamedTuple
 
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Int, PyTree
 
-from . import _compile as compilation
-from ._solver.guard import _ULPS, GuardState
-from ._mechanics import constraints as _constraints
-from ._mechanics.kkt import accelerations_and_multipliers
-from ._mechanics.lagrangian import mass_matrix, unconstrained_accelerations
-from ._tolerances import MASS_RCOND, rcond
+from ._solver.guard import GuardState
+
+#: Ends every compiled message: inside a compiled program the message is static (it names the
+#: cause); the numbers stay in the returned object.
+_COMPILED_HINT = (
+    " (Raised inside a compiled program: the numbers are in the returned object. Pass "
+    "throw=False and read traj.failure, or call traj.raise_if_failed() outside jit/vmap/grad, "
+    "for the full diagnosis.)"
+)
 
 
 class FailureCode(enum.IntEnum):
-    """How a simulation ended: the values of ``traj.failure.code``.
+    """How a simulation ended: the values of ``traj.failure.code``, each with its static message.
 
     ``traj.failure.code`` is an ``int32`` array (one entry per batch member); compare it with
     these members, e.g. ``traj.failure.code == jl.FailureCode.MAX_STEPS``, inside or outside
-    ``jit``. Each member's :attr:`message` is the static message raised from a compiled program.
+    ``jit``. That is why this is an ``int`` enumeration and not an ``eqx.Enumeration`` (as
+    diffrax's ``RESULTS``): its members are plain integers that ``jnp.where`` and ``==`` take as
+    they are. Each member's :attr:`message` is the static message raised from a compiled
+    program (:func:`~jaxlag._errors.error_if_failed`); the eager message, with the numbers, is
+    built on the host (:mod:`jaxlag._diagnosis`).
 
     - ``COMPLETED`` (0): the run reached its end time (or a terminal event).
     - ``NONFINITE`` (1): the equations of motion became non-finite (NaN or inf) and a smaller
@@ -69,48 +76,41 @@ class FailureCode(enum.IntEnum):
       or a state stuck at a discontinuous force).
     """
 
-    COMPLETED = 0
-    NONFINITE = 1
-    MAX_STEPS = 2
-    SOLVER = 3
-    MAX_SEGMENTS = 4
-    STEP_SIZE_COLLAPSED = 5
+    #: The static message raised for this result inside a compiled program (empty for
+    #: ``COMPLETED``).
+    message: str
 
-    @property
-    def message(self) -> str:
-        """The static message raised for this result inside a compiled program."""
-        return RESULT_MESSAGES[self.value]
+    def __new__(cls, value: int, message: str):
+        member = int.__new__(cls, value)
+        member._value_ = value
+        member.message = message
+        return member
 
-
-NONE, NONFINITE, MAX_STEPS = FailureCode.COMPLETED, FailureCode.NONFINITE, FailureCode.MAX_STEPS
-SOLVER, MAX_SEGMENTS = FailureCode.SOLVER, FailureCode.MAX_SEGMENTS
-COLLAPSED = FailureCode.STEP_SIZE_COLLAPSED
-
-#: Inside a compiled program the message is static (it names the cause); the numbers stay in the
-#: returned object.
-COMPILED_HINT = (
-    " (Raised inside a compiled program: the numbers are in the returned object. Pass "
-    "throw=False and read traj.failure, or call traj.raise_if_failed() outside jit/vmap/grad, "
-    "for the full diagnosis.)"
-)
-
-#: The static message of each result, indexed by its :class:`FailureCode`.
-RESULT_MESSAGES: tuple[str, ...] = (
-    "",
-    "jaxlag: the simulation stopped: the equations of motion became non-finite (NaN or inf) and "
-    "a smaller step did not help." + COMPILED_HINT,
-    "jaxlag: the simulation stopped: max_steps was reached before the end time (too few steps, "
-    "or steps held small by stiffness or by a state stuck at a discontinuous force, which more "
-    "steps do not cure)." + COMPILED_HINT,
-    "jaxlag: the simulation stopped: the diffrax solver reported a failure." + COMPILED_HINT,
-    "jaxlag: the simulation stopped: it needed more segments (events, releases, contacts) than "
-    "events=jl.Events(..., max_segments=...) allows." + COMPILED_HINT,
-    "jaxlag: the simulation stopped: the step size collapsed to round-off although every trial "
-    "state was finite: a finite-time singularity (a mass matrix becoming singular, a velocity "
-    "blowing up), stiffness that needs steps below the time resolution of the dtype, or a "
-    "discontinuous force." + COMPILED_HINT,
-)
-assert len(RESULT_MESSAGES) == len(FailureCode)
+    COMPLETED = 0, ""
+    NONFINITE = (
+        1,
+        "jaxlag: the simulation stopped: the equations of motion became non-finite (NaN or inf) "
+        "and a smaller step did not help." + _COMPILED_HINT,
+    )
+    MAX_STEPS = (
+        2,
+        "jaxlag: the simulation stopped: max_steps was reached before the end time (too few "
+        "steps, or steps held small by stiffness or by a state stuck at a discontinuous force, "
+        "which more steps do not cure)." + _COMPILED_HINT,
+    )
+    SOLVER = 3, "jaxlag: the simulation stopped: the diffrax solver reported a failure." + _COMPILED_HINT
+    MAX_SEGMENTS = (
+        4,
+        "jaxlag: the simulation stopped: it needed more segments (events, releases, contacts) "
+        "than events=jl.Events(..., max_segments=...) allows." + _COMPILED_HINT,
+    )
+    STEP_SIZE_COLLAPSED = (
+        5,
+        "jaxlag: the simulation stopped: the step size collapsed to round-off although every "
+        "trial state was finite: a finite-time singularity (a mass matrix becoming singular, a "
+        "velocity blowing up), stiffness that needs steps below the time resolution of the "
+        "dtype, or a discontinuous force." + _COMPILED_HINT,
+    )
 
 
 class SimulationError(RuntimeError):
@@ -119,27 +119,37 @@ class SimulationError(RuntimeError):
 
 # ----------------------------------------------------------------------------- the record
 class Failure(eqx.Module):
-    """How a simulation ended. ``code``: a :class:`FailureCode` value (0 completed, 1 non-finite
-    equations of motion, 2 ``max_steps`` reached, 3 other solver failure (``result``),
-    4 ``max_segments`` reached, 5 step size collapsed). ``t``: time reached; ``dt``: last step
-    size tried; ``q``, ``qd``: last accepted state; ``t0``, ``t1``: the interval; ``num_steps``:
-    steps taken."""
+    """How a simulation ended. ``code``: a :class:`FailureCode` value; ``t``: time reached;
+    ``dt``: last step size tried; ``q``, ``qd``: last accepted state; ``t0``, ``t1``: the
+    interval; ``num_steps``: steps taken; ``result``: diffrax's result (for
+    :attr:`FailureCode.SOLVER`); ``max_steps``, ``max_segments``: the limits the run had (for the
+    messages). Every array carries the batch axes first (``*batch``); after ``jax.device_get``
+    they are NumPy arrays."""
 
-    code: Any
-    t: Any
-    dt: Any
-    q: Any
-    qd: Any
-    t0: Any
-    t1: Any
-    num_steps: Any
-    result: Any
-    max_steps: Any = eqx.field(static=True, default=None)
-    max_segments: Any = eqx.field(static=True, default=None)
+    code: Int[Array, "*batch"]
+    t: Float[Array, "*batch"]
+    dt: Float[Array, "*batch"]
+    q: Float[Array, "*batch n"]
+    qd: Float[Array, "*batch n"]
+    t0: Float[Array, "*batch"]
+    t1: Float[Array, "*batch"]
+    num_steps: Int[Array, "*batch"]
+    result: Int[Array, "*batch"]
+    max_steps: int | None = eqx.field(static=True, default=None)
+    max_segments: int | None = eqx.field(static=True, default=None)
 
 
 def from_solution(
-    solution, t0, t1, q0, qd0, saved_t=None, saved_q=None, saved_qd=None, max_steps=None, max_segments=None
+    solution: diffrax.Solution,
+    t0: Float[ArrayLike, ""],
+    t1: Float[ArrayLike, ""],
+    q0: Float[Array, " n"],
+    qd0: Float[Array, " n"],
+    saved_t: Float[Array, " times"] | None = None,
+    saved_q: Float[Array, "times n"] | None = None,
+    saved_qd: Float[Array, "times n"] | None = None,
+    max_steps: int | None = None,
+    max_segments: int | None = None,
 ) -> Failure:
     """The :class:`Failure` of one ``diffeqsolve`` (run with ``throw=False`` and the guard's
     state saved; a ``StepTo`` controller has none and is judged by its saved states)."""
@@ -156,9 +166,11 @@ def from_solution(
     max_reached = result == diffrax.RESULTS.max_steps_reached
     code = jnp.where(
         ok,
-        NONE,
+        FailureCode.COMPLETED,
         jnp.where(
-            guarded, jnp.where(nonfinite, NONFINITE, COLLAPSED), jnp.where(max_reached, MAX_STEPS, SOLVER)
+            guarded,
+            jnp.where(nonfinite, FailureCode.NONFINITE, FailureCode.STEP_SIZE_COLLAPSED),
+            jnp.where(max_reached, FailureCode.MAX_STEPS, FailureCode.SOLVER),
         ),
     )
     if saved_q is not None:
@@ -169,12 +181,13 @@ def from_solution(
         reached = jnp.isfinite(saved_t)
         bad = reached & ~(jnp.all(jnp.isfinite(saved_q), axis=-1) & jnp.all(jnp.isfinite(saved_qd), axis=-1))
         first = jnp.argmax(bad)
-        late = (code == NONE) & jnp.any(bad)
-        code = jnp.where(late, NONFINITE, code)
+        late = (code == FailureCode.COMPLETED) & jnp.any(bad)
+        code = jnp.where(late, FailureCode.NONFINITE, code)
         before = jnp.maximum(first - 1, 0)
         t = jnp.where(late, saved_t[before], t)
         q = jnp.where(late, jnp.where(first > 0, saved_q[before], q0), q)
         qd = jnp.where(late, jnp.where(first > 0, saved_qd[before], qd0), qd)
+    stats = solution.stats
     return Failure(
         code=jnp.asarray(code, jnp.int32),
         t=jnp.asarray(t, dtype),
@@ -183,7 +196,7 @@ def from_solution(
         qd=qd,
         t0=jnp.asarray(t0, dtype),
         t1=jnp.asarray(t1, dtype),
-        num_steps=jnp.asarray(solution.stats["num_steps"], jnp.int32),
+        num_steps=jnp.asarray(stats["num_steps"], jnp.int32),
         result=jnp.asarray(result._value, jnp.int32),
         max_steps=max_steps,
         max_segments=max_segments,
@@ -192,486 +205,22 @@ def from_solution(
 
 def first_failure(earlier: Failure, later: Failure) -> Failure:
     """``earlier`` if it failed, else ``later`` (for simulations made of several solves)."""
-    failed = earlier.code != NONE
+    failed = earlier.code != FailureCode.COMPLETED
     pick = lambda a, b: jnp.where(failed, a, b)  # noqa: E731
     merged = jax.tree.map(pick, earlier, later)
     return eqx.tree_at(lambda f: f.num_steps, merged, earlier.num_steps + later.num_steps)
 
 
-# ----------------------------------------------------------------------------- diagnosis
-@compilation.filter_jit
-def _probe(system, q, qd, t, dt, args):
-    """Which quantity is non-finite at ``(q, q̇, t)`` and one Euler step of size ``dt`` later."""
-
-    def at(q, qd, t):
-        finite = lambda x: jnp.all(jnp.isfinite(x))  # noqa: E731
-        L = system.lagrangian(q, qd, t=t, args=args)
-        M = mass_matrix(system, q, qd, t, args)
-        if system.is_constrained:
-            f, f_dot, g = _constraints.constraint_residuals(system, q, qd, t, args)
-            constraints_ok = finite(f) & finite(f_dot) & finite(g)
-            qdd = accelerations_and_multipliers(system, q, qd, t, args)[0]
-        else:
-            constraints_ok = jnp.asarray(True)
-            qdd = unconstrained_accelerations(system, q, qd, t, args)
-        eig = jnp.linalg.eigvalsh(jnp.where(jnp.isfinite(M), M, 0.0))
-        flags = dict(
-            state=finite(q) & finite(qd),
-            lagrangian=finite(L),
-            mass_matrix=finite(M),
-            constraints=constraints_ok,
-            accelerations=finite(qdd),
-        )
-        return flags, eig, qdd
-
-    flags, eig, qdd = at(q, qd, t)
-    step = jnp.where(jnp.isfinite(dt) & (dt > 0), dt, 0.0)
-    q1 = q + step * qd
-    qd1 = qd + step * jnp.where(jnp.isfinite(qdd), qdd, 0.0)
-    flags1, eig1, _ = at(q1, qd1, t + step)
-    return (flags, eig, qdd), (flags1, eig1, q1, qd1)
+# ----------------------------------------------------------------------------- compiled check
+#: The static messages indexed by code, as ``eqx.branched_error_if`` takes them.
+_MESSAGES = tuple(code.message for code in FailureCode)
 
 
-_CAUSES = {
-    "state": "the state itself",
-    "lagrangian": "the Lagrangian L",
-    "mass_matrix": "the mass matrix M = ∂²L/∂q̇²",
-    "constraints": "the constraint functions (f, ḟ or g)",
-    "accelerations": "the accelerations q̈ (L, M and the constraints are finite: the solve "
-    "M q̈ = F + Jᵀλ failed, or a force or dissipation function returned NaN)",
-}
-
-
-def _fmt(x) -> str:
-    """An array for a message; long ones (a 100-link chain) by their ends and their size."""
-    x = np.asarray(x)
-    text = np.array2string(x, precision=6, separator=", ", max_line_width=200, threshold=12, edgeitems=3)
-    return text if x.size <= 12 else f"{text} (n = {x.size})"
-
-
-def _singular(eig) -> bool:
-    """The initial-state check's criterion (``checks.MASS_RCOND``, scaled to the dtype)."""
-    eig = np.asarray(eig)
-    threshold = rcond(MASS_RCOND, eig.dtype) if eig.size else 0.0
-    return bool(eig.size) and not eig[0] > threshold * max(np.max(np.abs(eig)), 1e-300)
-
-
-def _x64_hint(dtype) -> str:
-    if np.dtype(dtype) == np.float64:
-        return ""
-    if jax.dtypes.canonicalize_dtype(np.float64) == np.float64:  # x64 on: float32 passed on purpose
-        return (
-            f" (The simulation runs in {np.dtype(dtype).name}, the dtype of q0: mechanics in "
-            "single precision keeps ~7 digits; pass float64 arrays for ~16.)"
-        )
-    return (
-        f" (The simulation runs in {np.dtype(dtype).name}: jax_enable_x64 is off. Mechanics "
-        "in single precision keeps ~7 digits; enable float64 with "
-        "jax.config.update('jax_enable_x64', True) before creating arrays.)"
-    )
-
-
-def describe(failure: Failure, system=None, args=None) -> str:
-    """The message for one (unbatched, concrete) failure record."""
-    code = int(failure.code)
-    t, dt = float(failure.t), float(failure.dt)
-    t0, t1 = float(failure.t0), float(failure.t1)
-    q, qd = np.asarray(failure.q), np.asarray(failure.qd)
-    hint = _x64_hint(q.dtype)
-    where = f"at t = {t:.10g} (interval [{t0:g}, {t1:g}])"
-    state = f"q = {_fmt(q)}, q̇ = {_fmt(qd)}"
-    # Stuck at a discontinuity, or held back by stiffness: what the failed run's last state shows
-    # (evaluated only for the two codes where a step-size limit is the cause).
-    cause = (
-        _step_limit(system, failure, args) if code in (MAX_STEPS, COLLAPSED) and system is not None else None
-    )
-    if code == MAX_STEPS:
-        done = (t - t0) / (t1 - t0) if t1 != t0 else 0.0
-        steps = int(failure.num_steps)
-        msg = (
-            f"The simulation reached max_steps = {failure.max_steps or steps} steps {where}, "
-            f"{100 * done:.1f}% of the way"
-        )
-        if cause is not None and cause.kind == "discontinuity":
-            return msg + f", with steps of dt = {dt:.3g} from {state}. " + cause.text + hint
-        if done > 1e-3:
-            needed = int(np.ceil(steps / done))
-            suggestion = int(2 ** np.ceil(np.log2(needed * 1.2)))
-            msg += (
-                f": at this rate about {needed:,} steps are needed. Pass max_steps="
-                f"{suggestion} (or more), or loosen the step-size controller's rtol/atol "
-                "(default 1e-10), or use a constant step size."
-            )
-        else:
-            msg += (
-                f"; the last step size was {dt:.3g}. The steps are far too small for the "
-                "interval: the system may be stiff or singular near this state "
-                f"({state})."
-            )
-        if cause is not None:
-            msg += " " + cause.text
-        return msg + hint
-    if code == MAX_SEGMENTS:
-        used = failure.max_segments
-        done = (t - t0) / (t1 - t0) if t1 != t0 else 0.0
-        msg = (
-            f"The simulation needed more than max_segments = {used} segments (a segment ends at "
-            "each release, contact and event, terminal or recorded, at each crossing that a "
-            "condition's direction ignores, and at the end time): "
-            f"after {used} it had reached t = {t:.10g}, {100 * done:.1f}% of [{t0:g}, {t1:g}]"
-        )
-        if done > 1e-3 and used:
-            needed = int(np.ceil(used / done)) + 1
-            suggestion = int(2 ** np.ceil(np.log2(needed * 1.2)))
-            return msg + (
-                f"; at this rate about {needed} segments are needed. Pass "
-                f"events=jl.Events(..., max_segments={suggestion}) (or more)."
-            )
-        return msg + (
-            "; the switches pile up at one time (a contact that chatters, or a condition that "
-            "keeps crossing zero there), so more segments would not help. Run with "
-            "throw=False and look at traj.events to see which switch repeats."
-        )
-    if code == SOLVER:
-        text = _result_text(int(failure.result))
-        return f"The diffrax solver failed {where}: {text}" + hint
-    if code == NONFINITE:
-        msg = f"The equations of motion became non-finite (NaN or inf) {where}, from {state}"
-        msg += f"; no step, down to dt = {dt:.3g}, gave a finite state." if np.isfinite(dt) else "."
-    else:  # COLLAPSED
-        msg = (
-            f"The step size collapsed to dt = {dt:.3g} {where}: every step from {state} was "
-            "rejected although finite."
-        )
-        if cause is not None:
-            return msg + " " + cause.text + hint
-        msg += (
-            " The solution appears to reach a singularity here (a velocity or acceleration "
-            "blowing up, a mass matrix becoming singular)."
-        )
-    if system is not None:
-        msg += " " + _diagnosis(system, failure, args)
-    return msg + hint
-
-
-# ----------------------------------------------------------------------------- step-size limits
-def _accelerations(system, q, qd, t, args):
-    if system.is_constrained:
-        return accelerations_and_multipliers(system, q, qd, t, args)[0]
-    return unconstrained_accelerations(system, q, qd, t, args)
-
-
-@compilation.filter_jit
-def _linearization(system, q, qd, t, args):
-    """``ẏ`` and ``∂ẏ/∂y`` of the first-order system ``y = (q, q̇)``, ``ẏ = (q̇, q̈)``, and the
-    screen of :func:`_step_limit`: for each component ``y_j``, the change of ``q̈``
-    across ``y_j ± δ_j`` (``δ_j = 10⁻² (1 + |y_j|)``) and what the derivative predicts for it."""
-    n = q.shape[0]
-
-    def field(y):
-        return jnp.concatenate([y[n:], _accelerations(system, y[:n], y[n:], t, args)])
-
-    y = jnp.concatenate([q, qd])
-    ydot = field(y)
-    jac = jax.jacfwd(field)(y)
-    delta = 1e-2 * (1.0 + jnp.abs(y))
-    shift = jnp.diag(delta)
-    plus = jax.vmap(lambda e: field(y + e)[n:])(shift)
-    minus = jax.vmap(lambda e: field(y - e)[n:])(shift)
-    jump = jnp.linalg.norm(plus - minus, axis=-1)
-    predicted = 2.0 * delta * jnp.linalg.norm(jnp.where(jnp.isfinite(jac[n:]), jac[n:], 0.0), axis=0)
-    return ydot, jac, jump, predicted
-
-
-@compilation.filter_jit
-def _bisect(system, q, qd, t, args, j):
-    """Locate where ``q̈`` jumps as component ``j`` of ``y = (q, q̇)`` moves through
-    ``y_j ± δ_j`` (the interval of :func:`_linearization`'s screen): bisection on the larger
-    change. Returns the final bracket ``(a, b)`` and ``q̈`` at its ends; for a smooth ``q̈`` the
-    change across the final bracket vanishes with its width, across a discontinuity it does not."""
-    n = q.shape[0]
-    y = jnp.concatenate([q, qd])
-
-    def acc(x):
-        z = y.at[j].set(x)
-        return _accelerations(system, z[:n], z[n:], t, args)
-
-    delta = 1e-2 * (1.0 + jnp.abs(y[j]))
-    a, b = y[j] - delta, y[j] + delta
-
-    def body(_, carry):
-        a, b, fa, fb = carry
-        m = 0.5 * (a + b)
-        fm = acc(m)
-        left = jnp.linalg.norm(fa - fm)
-        right = jnp.linalg.norm(fm - fb)
-        go_left = left >= right
-        return (
-            jnp.where(go_left, a, m),
-            jnp.where(go_left, m, b),
-            jnp.where(go_left, fa, fm),
-            jnp.where(go_left, fm, fb),
-        )
-
-    return jax.lax.fori_loop(0, 80, body, (a, b, acc(a), acc(b)))
-
-
-def _component(j: int, n: int) -> str:
-    return f"q[{j}]" if j < n else f"q̇[{j - n}]"
-
-
-class _Cause(NamedTuple):
-    kind: str  # "discontinuity" or "stiffness"
-    text: str
-
-
-def _step_limit(system, failure: Failure, args) -> _Cause | None:
-    """Why the steps stayed small, from the last state of the failed run: a discontinuity of
-    ``q̈`` that the state is stuck at, or stiffness (a fast, stable mode far quicker than the
-    motion). ``None`` if neither is found (or the equations cannot be evaluated there)."""
-    q, qd, t, dt = failure.q, failure.qd, failure.t, float(failure.dt)
-    try:
-        ydot, jac, jump, predicted = jax.device_get(_linearization(system, q, qd, t, args))
-    except Exception:  # noqa: BLE001 - the diagnosis must not hide the failure
-        return None
-    n = np.asarray(q).shape[0]
-    dtype = np.asarray(q).dtype
-    # A jump that does not shrink with the interval: screened by the derivative, then bisected.
-    suspicious = np.isfinite(jump) & (jump > 10.0 * np.nan_to_num(predicted) + 1e-12)
-    for j in np.argsort(-np.where(suspicious, jump, -np.inf))[: min(4, int(np.sum(suspicious)))]:
-        try:
-            a, b, fa, fb = jax.device_get(_bisect(system, q, qd, t, args, int(j)))
-        except Exception:  # noqa: BLE001
-            continue
-        size = float(np.linalg.norm(fa - fb))
-        width = float(b - a)
-        if np.isfinite(size) and size >= 0.5 * float(jump[j]) and width <= 1e-6 * (1.0 + abs(float(a))):
-            return _Cause("discontinuity", _discontinuity_text(j, n, a, b, fa, fb, q, qd, dt))
-    if not (np.all(np.isfinite(jac)) and np.all(np.isfinite(ydot))):
-        return None
-    eig, vectors = np.linalg.eig(jac)
-    k = int(np.argmax(np.abs(eig)))
-    rho = float(np.abs(eig[k]))
-    # A step rejected with ρ·dt of order one is a stability (or fast-mode) limit; towards a
-    # finite-time singularity the steps shrink for accuracy with ρ·dt ≈ 0.05 instead.
-    if not (np.isfinite(dt) and rho * dt >= 0.25):
-        return None
-    y = np.concatenate([np.asarray(q), np.asarray(qd)])
-    floor = 1e-3 * max(1.0, float(np.max(np.abs(y))))
-    rate = float(np.max(np.abs(ydot) / (np.abs(y) + floor)))
-    lam = eig[k]
-    oscillating = abs(lam.imag) > 1e-3 * abs(lam)
-    slow = rho >= 30.0 * rate  # the state itself moves far slower than the fast mode
-    t0, t1 = float(failure.t0), float(failure.t1)
-    scale = max(abs(t0), abs(t1), abs(t1 - t0))
-    resolution = _ULPS * float(np.finfo(dtype).eps) * scale
-    limit = 3.0 / rho
-    at_round_off = limit <= 4 * resolution
-    if failure.code == MAX_STEPS and not (slow or at_round_off):
-        return None  # a fast motion resolved accurately: more steps is the right advice
-    mode = np.abs(vectors[:, k])
-    members = [_component(int(i), n) for i in np.argsort(-mode)[:3] if mode[i] >= 0.3 * np.max(mode)]
-    remaining = max(t1 - float(t), 0.0)
-    steps = int(np.ceil(remaining / limit)) if remaining > 0 else 0
-    if oscillating:
-        value = f"{lam.real:.3g} ± {abs(lam.imag):.3g}i"
-        kind = f"a fast oscillation, period 2π/|λ| = {2 * np.pi / rho:.2g}"
-    else:
-        value = f"{lam.real:.3g}"
-        kind = "stiff" if lam.real < 0 else "a fast growth"
-    opening = (
-        "The steps are held small by a fast mode of the equations of motion"
-        if failure.code == MAX_STEPS
-        else "The equations of motion have a fast mode here, not a singularity"
-    )
-    text = (
-        f"{opening}: the linearized "
-        f"equations ∂(q̇, q̈)/∂(q, q̇) have an eigenvalue λ = {value} ({kind}; |λ| = {rho:.3g} "
-        f"per unit time, its mode mostly in {', '.join(members)})"
-    )
-    if slow:
-        text += f", while the state changes at a rate of only about {rate:.3g}"
-    text += (
-        f". An explicit solver needs steps below about 3/|λ| = {limit:.2g} to stay stable, "
-        "whatever the accuracy asked for"
-    )
-    if at_round_off:
-        text += (
-            f", and in {np.dtype(dtype).name} that is at the round-off of t: the smallest step "
-            f"resolved on this interval is {resolution:.2g}. M is regular and everything is "
-            "finite."
-        )
-        if np.finfo(dtype).eps > np.finfo(np.float64).eps:
-            text += (
-                " Fix: enable float64 (jax.config.update('jax_enable_x64', True) before "
-                f"creating arrays, and float64 q0), where such steps resolve (about {steps:,} of "
-                "them for the rest of the interval: pass max_steps="
-                f"{int(2 ** np.ceil(np.log2(max(steps, 1) * 1.2)))} or more), or remove the fast "
-                "mode."
-            )
-        else:
-            text += " Fix: remove the fast mode."
-    else:
-        text += (
-            f" (about {steps:,} more steps to the end time): more steps will finish, or remove the fast mode."
-        )
-    return _Cause(
-        "stiffness",
-        text + " A rate this high comes from a very stiff spring or damper, a large gain or a "
-        "tiny mass: make the stiff element a constraint, soften it, or rescale it.",
-    )
-
-
-def _discontinuity_text(j, n, a, b, fa, fb, q, qd, dt) -> str:
-    y = np.concatenate([np.asarray(q), np.asarray(qd)])
-    name = _component(int(j), n)
-    at = 0.5 * (float(a) + float(b))
-    if abs(at) <= 1e3 * (float(b) - float(a)) + 1e-300:
-        at = 0.0  # at zero to the resolution of the bisection
-    size = float(np.linalg.norm(fa - fb))
-    worst = int(np.argmax(np.abs(fa - fb)))
-    velocity = j >= n
-    text = (
-        f"The state is stuck at a discontinuity of the equations of motion: q̈ jumps by "
-        f"{size:.3g} (q̈[{worst}] from {float(fa[worst]):.6g} to {float(fb[worst]):.6g}) where "
-        f"{name} crosses {at:.3g}, and the run ended with {name} = {float(y[j]):.3g}, on it. "
-        "No number of steps will finish it: each step crosses the jump and reverses "
-        f"(chattering), so the steps stay at dt ≈ {dt:.2g} however many are allowed. "
-    )
-    if velocity:
-        text += (
-            "A force that switches with the sign of a velocity, like Coulomb friction "
-            "−μN·sign(v), has no solution that moves off v = 0 while the other forces are "
-            "below μN (the body sticks). Regularize it: −μN·tanh(v/ε), with ε a small velocity "
-            "(e.g. 1e-3 of the typical speed). Consequences: sticking becomes a slow creep at "
-            "|v| ≈ ε·artanh(F/μN) under a force F < μN, and the force's slope μN/ε makes the "
-            "equations stiff (steps of about m·ε/(μN) with an explicit solver), so a smaller ε "
-            "is more faithful and slower. Or, where the normal force is a constraint multiplier, "
-            "use the stick–slip element: jl.System(..., friction=jl.Coulomb(contact, tangent, "
-            "mu)) sticks exactly and switches at the closed-form times."
-        )
-    else:
-        text += (
-            "A force that switches with position (a step in a potential or force, a contact "
-            "written with a sign or a comparison) has no classical solution that stays on it. "
-            "Regularize the switch: a smooth ramp such as tanh(x/ε) of width ε (the smaller "
-            "ε, the stiffer the equations and the smaller the steps), or split the motion into "
-            "phases at the switch with jl.Event."
-        )
-    return text
-
-
-def _result_text(value: int) -> str:
-    messages = getattr(diffrax.RESULTS, "_index_to_message", None)
-    if messages is not None and 0 <= value < len(messages):
-        return messages[value]
-    return f"diffrax result {value}"
-
-
-def _diagnosis(system, failure: Failure, args) -> str:
-    try:
-        (flags, eig, qdd), (flags1, eig1, q1, qd1) = jax.device_get(
-            _probe(system, failure.q, failure.qd, failure.t, failure.dt, args)
-        )
-    except Exception as error:  # noqa: BLE001 - the diagnosis must not hide the failure
-        return f"(Evaluating the equations of motion there raised {type(error).__name__}: {error}.)"
-    # The first non-finite quantity in the order of the computation (state, L, M, f, q̈).
-    for name in _CAUSES:
-        if not flags[name]:
-            text = f"There, {_CAUSES[name]} is non-finite."
-            if name in ("mass_matrix", "accelerations") and _singular(eig):
-                text += f" M is singular there (eigenvalues {_fmt(eig)})."
-            elif name == "accelerations" and not getattr(system.mass_solve, "checked", True):
-                text += (
-                    f" M = ∂²L/∂q̇² has eigenvalues {_fmt(eig)} there: with "
-                    "mass_solve=jl.RobustSolve() a state whose (learned) M is not positive definite "
-                    "gives NaN, and the run ends at it."
-                )
-            return text
-    if _singular(eig):
-        return (
-            f"There M = ∂²L/∂q̇² is singular (eigenvalues {_fmt(eig)}): a coordinate "
-            "singularity or a degenerate Lagrangian."
-        )
-    text = f"There everything is finite (|q̈| = {np.max(np.abs(qdd)):.3g}, M eigenvalues {_fmt(eig)})"
-    for name in _CAUSES:
-        if not flags1[name]:
-            return (
-                text + f"; one step dt further, at q = {_fmt(q1)}, {_CAUSES[name]} is "
-                "non-finite: the motion leaves the region where the equations are defined "
-                "(e.g. a fractional power or log of a negative number, a square root of a "
-                "negative argument, a division by zero)."
-            )
-    if _singular(eig1):
-        return text + f"; one step dt further M is singular (eigenvalues {_fmt(eig1)})."
-    return text + "."
-
-
-# ----------------------------------------------------------------------------- raising
-def member(tree, index):
-    """Member ``index`` of a batched host pytree. Leaves carry the batch axes first, of full size
-    or of size 1 (shared by every member)."""
-
-    def take(x):
-        x = np.asarray(x)
-        return x[tuple(i if x.shape[k] > 1 else 0 for k, i in enumerate(index))]
-
-    return jax.tree.map(take, tree)
-
-
-def failed_members(flags):
-    """Indices (tuples) of the batch members whose flag is set (``[()]`` unbatched)."""
-    flags = np.asarray(flags)
-    if flags.ndim == 0:
-        return [()] if bool(flags) else []
-    return [tuple(int(i) for i in index) for index in zip(*np.nonzero(flags))]
-
-
-def batch_prefix(index, flags, members) -> str:
-    """``"3 of 64 batch members failed (first: member [5])."`` or ``""`` when unbatched."""
-    if not index:
-        return ""
-    where = ", ".join(str(i) for i in index)
-    return (
-        f"{len(members)} of {np.asarray(flags).size} batch members failed (first: member "
-        f"[{where}]). Member [{where}]: "
-    )
-
-
-def message(failure: Failure, system=None, args=None, *, args_batched=False) -> str | None:
-    """The full message for a (possibly batched) host failure record, or None.
-
-    ``args`` of a batched record are used for the diagnosis only when ``args_batched`` says
-    that they carry the same batch axes."""
-    flags = np.asarray(failure.code) != NONE
-    members = failed_members(flags)
-    if not members:
-        return None
-    index = members[0]
-    if index and not args_batched:
-        system = None  # which args belong to the member is unknown: no diagnosis
-    member_args = member(args, index) if (index and args is not None) else args
-    text = describe(member(failure, index), system, member_args)
-    if index:
-        text = (
-            batch_prefix(index, flags, members) + text + " Pass throw=False to keep the "
-            "other members' results (traj.failure.code says which failed)."
-        )
-    return text
-
-
-def raise_if_failed(failure: Failure, system=None, args=None, *, args_batched=False) -> None:
-    """Raise :class:`SimulationError` eagerly if the (concrete) record says the run failed."""
-    host = jax.device_get(failure)  # one transfer; blocks until the simulation is done
-    text = message(host, system, args, args_batched=args_batched)
-    if text is not None:
-        raise SimulationError(text)
-
-
-def error_if_failed(failure: Failure, x):
-    """Compiled counterpart of :func:`raise_if_failed`: ``x`` (a pytree of floating-point
-    arrays), or an ``eqx.branched_error_if`` with the static message of the failure's code (the
-    record itself stays in the trajectory).
+def error_if_failed(failure: Failure, x: PyTree[Array]) -> PyTree[Array]:
+    """Compiled counterpart of :func:`jaxlag._diagnosis.raise_if_failed`: ``x`` (a pytree of
+    floating-point arrays), or an ``eqx.branched_error_if`` with the static
+    :attr:`FailureCode.message` of the failure's code (the record itself stays in the
+    trajectory).
 
     The check must survive dead-code elimination in programs that use only derivatives of ``x``
     (``jax.jit(jax.grad(...))`` of an event time reads no primal output): the tangents of ``x``
@@ -680,12 +229,12 @@ def error_if_failed(failure: Failure, x):
 
 
 def _checked_one(code, dtype):
-    return eqx.branched_error_if(jnp.ones((), dtype), code != NONE, code, RESULT_MESSAGES)
+    return eqx.branched_error_if(jnp.ones((), dtype), code != FailureCode.COMPLETED, code, _MESSAGES)
 
 
 @jax.custom_jvp
 def _checked(x, code):
-    return eqx.branched_error_if(x, code != NONE, code, RESULT_MESSAGES)
+    return eqx.branched_error_if(x, code != FailureCode.COMPLETED, code, _MESSAGES)
 
 
 @_checked.defjvp

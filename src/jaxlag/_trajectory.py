@@ -12,7 +12,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _compile as compilation
 from ._custom_types import Args, Multipliers, States, Times
-from ._errors import Failure, raise_if_failed
+from ._diagnosis import raise_if_failed
+from ._errors import Failure
 from ._events import EventLog
 from ._mechanics import constraints as _constraints
 from ._mechanics import friction as _friction

@@ -37,6 +37,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from . import _compile as compilation
+from ._checks import AbstractLagrangianChecks
 from ._conventions import UserFunction, wrap_configuration_function
 from ._custom_types import Args, Coordinates, Parameter, RealScalarLike, Scalar, Vector, Velocities
 from ._misc import is_concrete
@@ -426,10 +427,10 @@ def lagrangian_from_positions(
 
     Checks: constant masses and inertias when the bodies are built; masses and inertias that
     are functions of ``args``, and each body's rotation ``R(q0)``, at the initial state of a run
-    (:func:`check_bodies`: masses ``≥ 0``; inertias symmetric, positive semidefinite, principal
-    moments obeying ``I_a + I_b ≥ I_c``; ``R`` orthonormal with ``det R = +1`` within
-    :func:`pose_tolerance`; a parametrization that can leave the rotations, such as a quaternion,
-    held by a holonomic constraint). A singular mass matrix caused by gimbal lock of a body's
+    (masses ``≥ 0``; inertias symmetric, positive semidefinite, principal moments obeying
+    ``I_a + I_b ≥ I_c``; ``R`` orthonormal with ``det R = +1`` within :func:`pose_tolerance`; a
+    parametrization that can leave the rotations, such as a quaternion, held by a holonomic
+    constraint). A singular mass matrix caused by gimbal lock of a body's
     Euler angles is reported as such.
     """
     masses = _validated(masses, "lagrangian_from_positions", "masses", _point_masses_problem)
@@ -460,14 +461,14 @@ def lagrangian_from_positions(
             value = value - parameter_value(gravity, args, "gravity") * height
         return value
 
-    # Callable like the function, carrying the bodies for the initial-state check (check_bodies).
+    # Callable like the function, carrying the bodies for the initial-state check.
     return _PositionLagrangian(lagrangian, fn, masses, bodies)
 
 
 # ----------------------------------------------------------------------------- validation
 # A body's mass, inertia and pose are checked where they are known: constants when the body is
 # built (eagerly with the numbers; a traced constant carries an eqx.error_if), functions of
-# `args` and the pose at the initial state of a run (check_bodies, called by the initial-state
+# `args` and the pose at the initial state of a run (_check_bodies, called by the initial-state
 # check of every entry point). Nothing is checked per step.
 
 
@@ -586,7 +587,7 @@ def _inertia_problem(value, traced: bool = False):
 
 def _validated(value, owner: str, name: str, problem):
     """A constant mass or inertia checked when the body is built (a function of ``args`` is
-    checked at the initial state of a run, by :func:`check_bodies`)."""
+    checked at the initial state of a run, by :func:`_check_bodies`)."""
     if callable(value):
         return value
     if is_concrete(value):
@@ -608,10 +609,11 @@ def _offset(point, size: int, owner: str, dtype):
     return r
 
 
-class _PositionLagrangian:
+class _PositionLagrangian(AbstractLagrangianChecks):
     """The Lagrangian built by :func:`lagrangian_from_positions`: a plain callable (static under
-    ``jit``, like the function it replaces) that also knows its bodies and point masses, so
-    that the initial-state check can validate them (:func:`check_bodies`)."""
+    ``jit``, like the function it replaces) that also knows its bodies and point masses, and
+    implements the core's hook :class:`~jaxlag._checks.AbstractLagrangianChecks` so that the
+    initial-state check validates them (:func:`_check_bodies`)."""
 
     def __init__(self, fn, positions, masses, bodies):
         self._fn = fn
@@ -621,6 +623,16 @@ class _PositionLagrangian:
 
     def __call__(self, q, qd, t=0.0, args=None):
         return self._fn(q, qd, t, args)
+
+    def check_initial_state(self, system, q, qd, t, args):
+        return _check_bodies(self, system, q, qd, t, args)
+
+    def initial_state_diagnostics(self, system, q, qd, t, args):
+        del qd  # the checks depend on the configuration only
+        return _body_diagnostics(self, system, q, t, args)
+
+    def raise_for_diagnostics(self, system, diagnostics, q):
+        _raise_for_bodies(self, diagnostics, q)
 
 
 _GRAM = np.triu_indices(3)
@@ -845,7 +857,7 @@ def _traced_checks(lagrangian, v, q):
 _COMPILED = " (Checked inside a compiled program: call outside jit/vmap/grad to see the numbers.)"
 
 
-def check_bodies(system, q, qd, t, args):
+def _check_bodies(lagrangian: _PositionLagrangian, system, q, qd, t, args):
     """Validate the rigid bodies and point masses of a Lagrangian built by
     :func:`lagrangian_from_positions` at the initial state ``(q0, t0, args)``: masses ``≥ 0``,
     inertias symmetric, positive semidefinite, obeying the triangle inequality; each
@@ -853,10 +865,7 @@ def check_bodies(system, q, qd, t, args):
     rotations unless a holonomic constraint forbids it; and, when ``M`` is singular because a
     body's orientation coordinates are (gimbal lock), a message that says so. Concrete values
     raise ``ValueError`` with the numbers; traced ones return ``q`` carrying
-    ``eqx.branched_error_if`` (static messages). Other Lagrangians: ``q`` unchanged."""
-    lagrangian = system.lagrangian.fn
-    if not isinstance(lagrangian, _PositionLagrangian):
-        return q
+    ``eqx.branched_error_if`` (static messages)."""
     spatial = any(isinstance(b, RigidBody3D) for b in lagrangian.bodies)
     parameters = [b.mass for b in lagrangian.bodies] + [b.inertia for b in lagrangian.bodies]
     parameters += [lagrangian.masses] if lagrangian.positions is not None else []
@@ -881,14 +890,10 @@ def check_bodies(system, q, qd, t, args):
     return eqx.branched_error_if(q, jnp.any(stacked), jnp.argmax(stacked), messages)
 
 
-def body_diagnostics(system, q, qd, t, args):
-    """The checks of :func:`check_bodies` as values, traceable and without a callback (for
+def _body_diagnostics(lagrangian: _PositionLagrangian, system, q, t, args):
+    """The checks of :func:`_check_bodies` as values, traceable and without a callback (for
     batch programs that return their checks to the host): ``(values, flags)``, or ``None``
-    when there is nothing to check. :func:`raise_for_bodies` raises from them on the host."""
-    del qd  # the checks depend on the configuration only
-    lagrangian = system.lagrangian.fn
-    if not isinstance(lagrangian, _PositionLagrangian):
-        return None
+    when there is nothing to check. :func:`_raise_for_bodies` raises from them on the host."""
     spatial = any(isinstance(b, RigidBody3D) for b in lagrangian.bodies)
     parameters = [b.mass for b in lagrangian.bodies] + [b.inertia for b in lagrangian.bodies]
     parameters += [lagrangian.masses] if lagrangian.positions is not None else []
@@ -901,9 +906,9 @@ def body_diagnostics(system, q, qd, t, args):
     return values, jnp.stack([jnp.asarray(f) for f in flags])
 
 
-def raise_for_bodies(system, diagnostics, q) -> None:
+def _raise_for_bodies(lagrangian: _PositionLagrangian, diagnostics, q) -> None:
     """Raise ``ValueError`` with the numbers for the first batch member whose bodies fail the
-    checks of :func:`body_diagnostics` (``diagnostics`` and ``q`` with or without a leading
+    checks of :func:`_body_diagnostics` (``diagnostics`` and ``q`` with or without a leading
     batch axis)."""
     if diagnostics is None:
         return
@@ -918,7 +923,6 @@ def raise_for_bodies(system, diagnostics, q) -> None:
     if batched:
         values = jax.tree.map(lambda x: np.asarray(x)[first], values)
         q = q[first]
-    lagrangian = system.lagrangian.fn
     text = _host_problem(lagrangian, values, q)
     if text is None:  # within round-off of a threshold: the compiled flag's static message
         _, messages = _traced_checks(lagrangian, values, jnp.asarray(q))

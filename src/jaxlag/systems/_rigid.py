@@ -7,9 +7,10 @@ the classical intrinsic ``"zxz"`` sequence ``(φ, θ, ψ)`` (precession, nutatio
 at ``θ = 0, π``; quaternions ``(w, x, y, z)`` carry ``|q|² − 1 = 0`` as a holonomic constraint
 (its multiplier does no work) and pass through every orientation.
 
-Parameters are checked at the initial state of a run (:func:`jaxlag.coordinates.check_bodies`):
-masses ``≥ 0`` and principal moments ``≥ 0`` obeying the triangle inequality (for a symmetric
-top ``I3 ≤ 2 I1``; for ``torque_free_body`` each moment at most the sum of the other two). An
+Parameters are checked at the initial state of a run (by the Lagrangian of
+:func:`jaxlag.coordinates.lagrangian_from_positions`): masses ``≥ 0`` and principal moments
+``≥ 0`` obeying the triangle inequality (for a symmetric top ``I3 ≤ 2 I1``; for
+``torque_free_body`` each moment at most the sum of the other two). An
 Euler-angle model started at gimbal lock (``θ = 0`` or ``π``) is refused with a message that
 names it; the ``"quaternion"`` form has no such point.
 """
