@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _compile as compilation
+from . import _diagnosis
 from . import _errors as failures
 from ._solver.guard import guard, saving_guard_state
 from ._solver import tangent_solve
@@ -607,7 +608,7 @@ def _raise_if_failed(trajectory: Trajectory, system: System, args) -> Trajectory
     """Eagerly (concrete result: synchronous, full diagnosis) or compiled into the program."""
     failure = cast(failures.Failure, trajectory.failure)  # simulate always records how it ended
     if is_concrete(failure):
-        failures.raise_if_failed(failure, system, args)
+        _diagnosis.raise_if_failed(failure, system, args)
         return trajectory
     # On every floating-point output, not only q: a program that reads only an event time (e.g.
     # jax.grad of a bounce time under jit) must not drop the check as dead code.

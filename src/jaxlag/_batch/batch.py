@@ -47,7 +47,9 @@ from jaxtyping import ArrayLike, Float, PyTree
 from typing_extensions import Unpack
 
 from .. import _checks as checking
+from .. import _diagnosis
 from .. import _errors as failures
+from .._errors import FailureCode
 from .._checks import Checks
 from .._conventions import as_array_leaves, as_float_state, as_jax_array
 from .._custom_types import Args
@@ -328,9 +330,9 @@ def _raise_for_failed_members(out: Trajectory, throw: bool, system, batched_args
     if out.failure.code.is_fully_addressable:
         if is_concrete((batched_args, shared_args)):
             member_args = _member_args(batched_args, shared_args)
-            failures.raise_if_failed(out.failure, system, member_args, args_batched=True)
+            _diagnosis.raise_if_failed(out.failure, system, member_args, args_batched=True)
         else:  # a concrete record of traced parameters (jax.jacfwd): no diagnosis at the state
-            failures.raise_if_failed(out.failure)
+            _diagnosis.raise_if_failed(out.failure)
     else:
         # Several hosts: each process can read only its own rows; it raises for those.
         _raise_for_local_members(out.failure)
@@ -340,12 +342,12 @@ def _raise_for_failed_members(out: Trajectory, throw: bool, system, batched_args
 def _raise_for_local_members(failure) -> None:
     for shard in failure.code.addressable_shards:
         codes = np.asarray(shard.data)
-        if np.any(codes != failures.NONE):
+        if np.any(codes != FailureCode.COMPLETED):
             rows = shard.index[0]
-            bad = [int(i) + (rows.start or 0) for i in np.nonzero(codes != failures.NONE)[0]]
+            bad = [int(i) + (rows.start or 0) for i in np.nonzero(codes != FailureCode.COMPLETED)[0]]
             raise failures.SimulationError(
                 f"Batch members {bad} (on this process) did not complete: failure codes "
-                f"{codes[codes != failures.NONE].tolist()} (1 non-finite, 2 max_steps, 3 solver, "
+                f"{codes[codes != FailureCode.COMPLETED].tolist()} (1 non-finite, 2 max_steps, 3 solver, "
                 "4 max_segments, 5 step size collapsed). Pass throw=False and read "
                 "traj.failure.code.addressable_shards (or gather it) for the details."
             )
@@ -353,7 +355,7 @@ def _raise_for_local_members(failure) -> None:
 
 def _member_args(batched_args, shared_args):
     """Host args with a leading batch axis on the batched leaves and size 1 on the shared ones
-    (the layout :func:`jaxlag._errors.member` indexes)."""
+    (the layout :func:`jaxlag._diagnosis.member` indexes)."""
     batched = jax.tree.map(np.asarray, batched_args)
     shared = jax.tree.map(lambda x: np.asarray(x)[None] if eqx.is_array_like(x) else x, shared_args)
     return eqx.combine(batched, shared)

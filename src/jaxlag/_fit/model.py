@@ -18,7 +18,9 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
 from .. import _compile as compilation
+from .. import _diagnosis
 from .. import _errors as failures
+from .._errors import FailureCode
 from .._checks import Checks
 from .._simulate import simulate
 from .._stabilization import (
@@ -277,12 +279,12 @@ def raise_for_health(model: Model, checks, flat_params, data: Data) -> None:
         raise ValueError(
             f"jl.fit, {where(tuple(bad[0]))}: " + position_failure_message(tolerance, residual.dtype)
         )
-    failed = np.argwhere(np.asarray(failure.code) != failures.NONE)
+    failed = np.argwhere(np.asarray(failure.code) != FailureCode.COMPLETED)
     if failed.size:
         index = tuple(failed[0])
         params = model.physical(flat_params)  # only now: eager operations compile
         args = jax.device_get({**data.fixed, **params})
-        text = failures.describe(failures.member(failure, index), model.system, args)
+        text = _diagnosis.describe(_diagnosis.member(failure, index), model.system, args)
         raise failures.SimulationError(
             f"jl.fit, {where(index)}, at parameters "
             + ", ".join(f"{k}={np.asarray(v)}" for k, v in params.items())

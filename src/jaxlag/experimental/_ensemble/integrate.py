@@ -55,6 +55,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from ... import _errors as failures
+from ..._errors import FailureCode
 from ..._checks import initial_state_diagnostics, validate_initial_state
 from ..._solver.guard import _ULPS
 from ..._solver.validation import solver_controller_message
@@ -527,8 +528,8 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
     }
     code = jnp.where(
         final.failed,
-        jnp.where(final.nonfinite, failures.NONFINITE, failures.COLLAPSED),
-        jnp.where(final.k >= num_saves, failures.NONE, failures.MAX_STEPS),
+        jnp.where(final.nonfinite, FailureCode.NONFINITE, FailureCode.STEP_SIZE_COLLAPSED),
+        jnp.where(final.k >= num_saves, FailureCode.COMPLETED, FailureCode.MAX_STEPS),
     )
     record = LoopRecord(code.astype(jnp.int32), final.k - 1, final.t, final.last_dt, *final.y)
     return saved, stats, jax.lax.stop_gradient(record)
@@ -597,8 +598,8 @@ def _result_of(code):
     """The diffrax result of one member (the guard of ``jl.simulate`` reports a non-finite
     or collapsed step as ``dt_min_reached``)."""
     results = diffrax.RESULTS
-    stopped = results.where(code == failures.MAX_STEPS, results.max_steps_reached, results.dt_min_reached)
-    return results.where(code == failures.NONE, results.successful, stopped)
+    stopped = results.where(code == FailureCode.MAX_STEPS, results.max_steps_reached, results.dt_min_reached)
+    return results.where(code == FailureCode.COMPLETED, results.successful, stopped)
 
 
 def member_failures(ts, y0, saved, stats, record, steps_per_interval, max_steps):
@@ -618,7 +619,7 @@ def member_failures(ts, y0, saved, stats, record, steps_per_interval, max_steps)
     if record is None:
         h = jnp.diff(ts, axis=1) / jnp.asarray(steps_per_interval, ts.dtype)  # (B, T-1)
         record = LoopRecord(
-            jnp.full((batch,), failures.NONE, jnp.int32),
+            jnp.full((batch,), FailureCode.COMPLETED, jnp.int32),
             jnp.full((batch,), intervals, jnp.int32),
             ts[:, -1],
             h[:, -1],
@@ -632,7 +633,7 @@ def member_failures(ts, y0, saved, stats, record, steps_per_interval, max_steps)
     finite = jnp.all(jnp.isfinite(saved[0]), axis=-1) & jnp.all(jnp.isfinite(saved[1]), axis=-1)
     bad = ~finite & (column < record.reached[None, :])  # (T-1, B)
     first = jnp.argmax(bad, axis=0).astype(record.reached.dtype)
-    late = (record.code == failures.NONE) & jnp.any(bad, axis=0)
+    late = (record.code == FailureCode.COMPLETED) & jnp.any(bad, axis=0)
     before = jnp.maximum(first - 1, 0)
 
     def last_good(saves, start):
@@ -641,7 +642,7 @@ def member_failures(ts, y0, saved, stats, record, steps_per_interval, max_steps)
     y0 = jax.lax.stop_gradient(y0)
     dt_late = record.dt if h is None else h[members, first]
     record = LoopRecord(
-        jnp.where(late, failures.NONFINITE, record.code),
+        jnp.where(late, FailureCode.NONFINITE, record.code),
         jnp.where(late, first, record.reached),
         jnp.where(late, ts[members, first], record.t),
         jnp.where(late, dt_late, record.dt),
