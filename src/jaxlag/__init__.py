@@ -35,6 +35,7 @@ from ._compile import compiler_options as compiler_options
 from ._errors import FailureCode as FailureCode, SimulationError as SimulationError
 from ._events import (
     Event as Event,
+    EventKind as EventKind,
     EventLog as EventLog,
     Events as Events,
     multiplier_limit as multiplier_limit,

@@ -40,196 +40,40 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from . import _compile as compilation
-from . import _errors as failures
+from ._errors import Failure, FailureCode, first_failure, from_solution
 from ._checks import initial_activity, validate_initial_state
 from ._events import Event, EventKind, EventLog, Events, root_finder_for
+from ._segment_conditions import SegmentConditions, condition_dtype, condition_values, sides_from
 from ._mechanics.constant_mass import with_constant_mass
 from ._mechanics.constraints import holonomic_residual
-from ._mechanics.friction import solve_with_modes
 from ._mechanics.friction_modes import AbstractFrictionModes, friction_modes_for
 from ._mechanics.jumps import AbstractJumpLaw, Jump, SegmentEnd, jump_law_for
 from ._mechanics.resets import AbstractResets, resets_for
 from ._simulation_inputs import SimulationInputs
 from ._solver.guard import guard
 from ._solver.step_once import StepOnce
-from ._stabilization import stages_for_adjoint, wrap_for_projection
+from ._stabilization import Baumgarte, Projection, stages_for_adjoint, wrap_for_projection
+from ._system import System
 from ._trajectory import Trajectory
 from ._vector_field import EquationsOfMotion
 
 _STEP_COUNTS = ("num_steps", "num_accepted_steps", "num_rejected_steps")
 
 
-def _condition_dtype():
-    """The dtype of condition values: JAX's default float. (diffrax pads untriggered conditions
-    with a Python ``0.0`` inside a ``lax.cond``, which must match the condition's dtype: float32
-    states under ``jax_enable_x64`` would otherwise fail to trace.)"""
-    return jax.dtypes.canonicalize_dtype(float)
-
-
-def _masked_min(values, mask):
-    return jnp.min(jnp.where(mask, values, jnp.inf), initial=jnp.inf)
-
-
-@compilation.filter_jit
-def _release_value(system, y, t, args, active, unilateral, modes=None):
-    """``min λ`` over the acting unilateral constraints (``inf`` if none). Jitted on its own:
-    diffrax traces event conditions a dozen times per solve and each trace is a KKT solve;
-    JAX's tracing cache serves the repeats."""
-    q, qd = y
-    lam = solve_with_modes(system, q, qd, t, args, active=active, modes=modes)[1]
-    return _masked_min(lam, active & unilateral)
-
-
-class _Segment(eqx.Module):
-    """The conditions of one segment (a Module, so that diffrax's compile cache is reused)."""
-
-    system: Any
-    events: tuple[Event, ...]
-    friction: AbstractFrictionModes
-    unilateral: Bool[Array, " m_h"]
-    active: Bool[Array, " m_h"]
-    t_start: Float[Array, ""]
-    sides: Float[Array, " e"] | None  # the side (±1; 0 unknown) of each user condition
-    # Inactive unilateral rows that touch (f ≈ 0) at t_start: just rebounded, released or reset.
-    departing: Bool[Array, " m_h"] | None
-    modes: Float[Array, " k"]
-
-    def release(self, t, y, args, **kwargs):
-        """``min λ`` over the acting unilateral rows; 1 if there is none (a constant)."""
-        value = self.release_raw(t, y, args)
-        return jnp.where(jnp.isfinite(value), value, 1.0).astype(_condition_dtype())
-
-    def release_raw(self, t, y, args):
-        value = _release_value(self.system, y, t, args, self.active, self.unilateral, self.modes)
-        return value.astype(_condition_dtype())
-
-    def contact(self, t, y, args, **kwargs):
-        """:meth:`contact_raw`, 1 where it is ``inf`` (a diffrax condition of its own)."""
-        value = self.contact_raw(t, y, args)
-        return jnp.where(jnp.isfinite(value), value, 1.0).astype(_condition_dtype())
-
-    def contact_raw(self, t, y, args):
-        """``min_i f_i`` over the inactive unilateral rows (``inf`` at ``t_start`` and where
-        there is none), ``f_i / (t − t_start)`` for the :attr:`departing` ones.
-
-        The division keeps the roots of ``f_i`` after ``t_start`` but not the one at ``t_start``
-        of a body that has just rebounded from ``f_i = 0``: there ``f_i ≈ ḟ⁺ δ − ½|f̈| δ²``
-        (``δ = t − t_start``), ``f_i ≤ 0`` at both ends of a solver step longer than the flight
-        (the landing would be missed), while the quotient starts at ``ḟ⁺ > 0`` and is close to
-        linear. The other rows keep ``f_i``: concave and decreasing at a landing, where Newton
-        from the right converges monotonically."""
-        q, _ = y
-        f = holonomic_residual(self.system, q, t, args)
-        later = t > self.t_start
-        if self.departing is not None:
-            elapsed = jnp.where(later, t - self.t_start, 1.0).astype(f.dtype)
-            f = jnp.where(self.departing, f / elapsed, f)
-        value = _masked_min(f, ~self.active & self.unilateral)
-        return jnp.where(later, value, jnp.inf).astype(_condition_dtype())
-
-    def raw(self, j, t, y, args):
-        """The user's condition ``c_j`` at ``(t, q, q̇)``."""
-        q, qd = y
-        event = self.events[j]
-        available = {"t": t, "args": args}
-        if "multipliers" in event.condition.keywords:
-            available["multipliers"] = solve_with_modes(
-                self.system, q, qd, t, args, active=self.active, modes=self.modes
-            )[1]
-        return jnp.asarray(event.condition(q, qd, **available), _condition_dtype())
-
-    def signed(self, t, y, args):
-        """``σ_k c_k``: positive on the side each condition starts the segment on (``+inf``
-        where that side is unknown, ``σ_k = 0``); it turns ≤ 0 when ``c_k`` crosses."""
-        values = jnp.stack([self.raw(j, t, y, args) for j in range(len(self.events))])
-        return jnp.where(self.sides != 0, self.sides * values, jnp.inf)
-
-    def switches(self, t, y, args, release: bool = True):
-        """The quantities that end the segment when they reach 0 from above, in this order:
-        ``min λ`` and ``min f`` (with unilateral rows), the friction switch (with Coulomb
-        contacts), then ``σ_k c_k``. ``release=False``: without the two that need the KKT
-        solve (``min λ`` and the friction switch)."""
-        values = []
-        if self.system.unilateral:
-            values = [self.release_raw(t, y, args)] if release else []
-            values.append(self.contact_raw(t, y, args))
-        if release:
-            q, qd = y
-            values.append(self.friction.switch_values(self.system, q, qd, t, args, self.active, self.modes))
-        if self.events:
-            values.append(self.signed(t, y, args))
-        values = [jnp.reshape(v, (-1,)).astype(_condition_dtype()) for v in values]
-        return jnp.concatenate(values) if values else jnp.zeros((0,), _condition_dtype())
-
-    def crossing(self, t, y, args, **kwargs):
-        """The one diffrax condition of the segment, ``φ = min`` of :meth:`switches`: ``φ > 0``
-        until the first switch and 0 there. At ``t_start`` each term is put above 0 (its
-        quantity may be ~0 after an event, with a residual of either sign, and diffrax counts a
-        change of sign to 0 as a crossing)."""
-        values = self.switches(t, y, args)
-        tiny = jnp.finfo(values.dtype).tiny
-        values = jnp.where(t == self.t_start, jnp.maximum(jnp.abs(values), tiny), values)
-        # The minimum over the finite terms; 1 if there is none (a constant among them would cap
-        # the minimum and stall the root find where the real terms are above it).
-        smallest = jnp.min(jnp.where(jnp.isfinite(values), values, jnp.inf))
-        return jnp.where(jnp.isfinite(smallest), smallest, 1.0)
-
-    @property
-    def paired(self) -> bool:
-        """Releases and contacts only: two diffrax conditions, ``min λ`` and ``min f``."""
-        return not self.events and not self.system.friction
-
-    def diffrax_event(self, root_finder):
-        if self.paired:
-            return diffrax.Event([self.release, self.contact], root_finder=root_finder, direction=[False] * 2)
-        return diffrax.Event(self.crossing, root_finder=root_finder, direction=False)
-
-
-def _sides_from(values):
-    """The side of each condition from ``(c, ċ, c̈)``: the sign of the first non-zero."""
-    c0, c1, c2 = values
-    side = jnp.where(c0 != 0, jnp.sign(c0), jnp.where(c1 != 0, jnp.sign(c1), jnp.sign(c2)))
-    return jnp.where(jnp.isfinite(side), side, 0.0).astype(_condition_dtype())
-
-
-def condition_values(segment: _Segment, baumgarte, q, qd, t, args):
-    r"""``(c, ċ, c̈)`` of each user condition at ``(q, q̇, t)``: the derivatives along the motion
-    (Lie derivatives along ``ẏ = (q̇, q̈)``, by nested ``jax.jvp``).
-
-    The side each condition starts on is the sign of the first non-zero of them (0 if all
-    three vanish), so a condition that is exactly 0 at ``t0`` is on the side it leaves to and
-    its first event is its next sign change; the same rule gives the sides after a jump."""
-    num_events = len(segment.events)
-    field = EquationsOfMotion(segment.system, baumgarte, segment.active, segment.modes)
-    t = jnp.asarray(t, q.dtype)
-
-    def values(s, y):
-        return jnp.stack([segment.raw(j, s, y, args) for j in range(num_events)])
-
-    def rate(fn):
-        def along_motion(s, y):
-            return jax.jvp(fn, (s, y), (jnp.ones_like(s), field(s, y, args)))[1]
-
-        return along_motion
-
-    y = (q, qd)
-    return values(t, y), rate(values)(t, y), rate(rate(values))(t, y)
-
-
 class _Loop(eqx.Module):
     """What every segment of one run shares: the system, the options and the feature laws."""
 
-    system: Any
+    system: System
     args: PyTree
     ts: Float[Array, " saves"]
     t1: Float[Array, ""]
     dt0: Float[Array, ""] | float | None
     solver: diffrax.AbstractSolver
     controller: diffrax.AbstractStepSizeController
-    adjoint: Any
+    adjoint: diffrax.AbstractAdjoint
     progress_meter: diffrax.AbstractProgressMeter
-    baumgarte: Any
-    projection: Any
+    baumgarte: Baumgarte | None
+    projection: Projection | None
     events: tuple[Event, ...]
     root_finder: optx.AbstractRootFinder
     max_steps: int | None = eqx.field(static=True)
@@ -249,8 +93,8 @@ class _Loop(eqx.Module):
         f = holonomic_residual(self.system, carry.q, carry.t, self.args)
         return self.unilateral & ~carry.active & (f <= self.tolerance)
 
-    def segment(self, active, t_start, sides, modes, departing=None) -> _Segment:
-        return _Segment(
+    def segment(self, active, t_start, sides, modes, departing=None) -> SegmentConditions:
+        return SegmentConditions(
             self.system, self.events, self.friction, self.unilateral, active, t_start, sides, departing, modes
         )
 
@@ -271,7 +115,7 @@ class _SegmentCarry(eqx.Module):
     out_modes: Float[Array, "saves k"]
     filled: Bool[Array, " saves"]
     count: Int[Array, ""]  # events that happened
-    failure: failures.Failure
+    failure: Failure
     steps: dict[str, Int[Array, ""]]  # diffrax's step counts, summed
 
 
@@ -297,7 +141,7 @@ class _SolvedSegment(eqx.Module):
     saved_q: Float[Array, "saves n"]
     saved_qd: Float[Array, "saves n"]
     fired: tuple[Bool[Array, ""], ...]  # diffrax's event mask (one or two conditions)
-    failure: failures.Failure  # the run's first failure so far
+    failure: Failure  # the run's first failure so far
     broken: Bool[Array, ""]  # the run has failed: this segment's end is no state of the motion
     stats: dict[str, Int[Array, ""]]
 
@@ -317,7 +161,7 @@ class _Crossing(eqx.Module):
     residual: Float[Array, ""]  # |the switch quantity| at the located event
 
 
-def _solve_segment(loop: _Loop, carry: _SegmentCarry, segment: _Segment) -> _SolvedSegment:
+def _solve_segment(loop: _Loop, carry: _SegmentCarry, segment: SegmentConditions) -> _SolvedSegment:
     """One ``diffeqsolve`` from the carry's state to the first switch (or ``t1``)."""
     solver = stages_for_adjoint(loop.solver, loop.adjoint)  # diffrax does not see it in StepOnce
     if loop.projection is not None:
@@ -344,7 +188,7 @@ def _solve_segment(loop: _Loop, carry: _SegmentCarry, segment: _Segment) -> _Sol
     if solution.ts is None or solution.ys is None:  # the SaveAt above saves both
         raise RuntimeError("jaxlag: diffrax returned no saved times or states for an event segment.")
     (saved_q, saved_qd), (final_q, final_qd) = solution.ys
-    this = failures.from_solution(
+    this = from_solution(
         solution,
         carry.t,
         loop.t1,
@@ -353,9 +197,9 @@ def _solve_segment(loop: _Loop, carry: _SegmentCarry, segment: _Segment) -> _Sol
         max_steps=loop.max_steps,
         max_segments=loop.max_segments,
     )
-    this = eqx.tree_at(lambda f: f.code, this, jnp.where(carry.done, failures.NONE, this.code))
-    failure = failures.first_failure(carry.failure, this)
-    broken = failure.code != failures.NONE
+    this = eqx.tree_at(lambda f: f.code, this, jnp.where(carry.done, FailureCode.COMPLETED, this.code))
+    failure = first_failure(carry.failure, this)
+    broken = failure.code != FailureCode.COMPLETED
     fired = tuple(jnp.asarray(x) & ~carry.done & ~broken for x in jax.tree.leaves(solution.event_mask))
     return _SolvedSegment(
         t=jnp.where(broken, loop.t1, solution.ts[1][0]),
@@ -387,9 +231,9 @@ def _fill_saves(loop: _Loop, carry: _SegmentCarry, solved: _SolvedSegment) -> _S
     )
 
 
-def _which_switch(loop: _Loop, segment: _Segment, carry: _SegmentCarry, solved: _SolvedSegment):
+def _which_switch(loop: _Loop, segment: SegmentConditions, carry: _SegmentCarry, solved: _SolvedSegment):
     """``(index, values)``: the switch at zero (the smallest) at the event among those
-    decreasing there, in :meth:`_Segment.switches` order. Near an event more than one can be
+    decreasing there, in :meth:`SegmentConditions.switches` order. Near an event more than one can be
     ~0 within the root finder's tolerance (two conditions crossing at the same instant; the gap
     of a constraint just released, which grows from 0 quadratically, and a user condition
     crossing just after). The release and friction switches are taken as decreasing: their
@@ -413,7 +257,9 @@ def _which_switch(loop: _Loop, segment: _Segment, carry: _SegmentCarry, solved: 
     return which, values
 
 
-def _classify(loop: _Loop, segment: _Segment, carry: _SegmentCarry, solved: _SolvedSegment) -> _Crossing:
+def _classify(
+    loop: _Loop, segment: SegmentConditions, carry: _SegmentCarry, solved: _SolvedSegment
+) -> _Crossing:
     """What ended the segment, from diffrax's event mask and the switch values at its end."""
     false = jnp.asarray(False)
     num_events = len(loop.events)
@@ -457,7 +303,7 @@ def _classify(loop: _Loop, segment: _Segment, carry: _SegmentCarry, solved: _Sol
     side = carry.sides[index]
     # Recorded: every crossing of a condition without direction; one in the direction it names
     # (it leaves the side opposite to it). Otherwise the crossing only ends the segment.
-    direction = jnp.array([_crossed_to(e.direction) for e in loop.events], _condition_dtype())[index]
+    direction = jnp.array([_crossed_to(e.direction) for e in loop.events], condition_dtype())[index]
     counted = (direction == 0) | (direction == -side)
     terminal = jnp.array([e.terminal for e in loop.events], bool)[index]
     return _Crossing(
@@ -622,13 +468,13 @@ def _run_segment(loop: _Loop, carry: _SegmentCarry) -> tuple[_SegmentCarry, _Seg
 
 def _initial_carry(loop: _Loop, q0, qd0, t0, active0, modes0) -> _SegmentCarry:
     num_saves, n, dtype = loop.ts.shape[0], q0.shape[0], q0.dtype
-    sides = jnp.zeros((0,), _condition_dtype())
+    sides = jnp.zeros((0,), condition_dtype())
     if loop.events:
         start = loop.segment(active0, t0, None, modes0)
-        sides = _sides_from(condition_values(start, loop.baumgarte, q0, qd0, t0, loop.args))
+        sides = sides_from(condition_values(start, loop.baumgarte, q0, qd0, t0, loop.args))
     inf = jnp.full((num_saves, n), jnp.inf, dtype)
-    none = failures.Failure(
-        code=jnp.asarray(failures.NONE, jnp.int32),
+    none = Failure(
+        code=jnp.asarray(FailureCode.COMPLETED, jnp.int32),
         t=jnp.asarray(loop.t1, dtype),
         dt=jnp.asarray(jnp.nan, dtype),
         q=q0,
@@ -659,16 +505,16 @@ def _initial_carry(loop: _Loop, q0, qd0, t0, active0, modes0) -> _SegmentCarry:
     )
 
 
-def _out_of_segments(carry: _SegmentCarry, t0) -> failures.Failure:
+def _out_of_segments(carry: _SegmentCarry, t0) -> Failure:
     """The run's failure, ``MAX_SEGMENTS`` if it had not ended after the last segment (from the
     run's start to where it got)."""
     failure = carry.failure
-    out = ~carry.done & (failure.code == failures.NONE)
+    out = ~carry.done & (failure.code == FailureCode.COMPLETED)
     return eqx.tree_at(
         lambda f: (f.code, f.t0, f.t, f.q, f.qd),
         failure,
         (
-            jnp.where(out, failures.MAX_SEGMENTS, failure.code),
+            jnp.where(out, FailureCode.MAX_SEGMENTS, failure.code),
             jnp.where(out, jnp.asarray(t0, failure.t0.dtype), failure.t0),
             jnp.where(out, carry.t, failure.t),
             jnp.where(out, carry.q, failure.q),
@@ -681,7 +527,8 @@ def _projected_saves(loop: _Loop, carry: _SegmentCarry) -> tuple[Array, Array]:
     """The saved states, projected onto the rows acting at each save (``inf`` stays ``inf``)."""
     if loop.projection is None:
         return carry.out_q, carry.out_qd
-    out_q, out_qd = jax.vmap(lambda t, x, v, a: loop.projection(loop.system, x, v, t, loop.args, a))(
+    projection = loop.projection
+    out_q, out_qd = jax.vmap(lambda t, x, v, a: projection(loop.system, x, v, t, loop.args, a))(
         loop.ts, carry.out_q, carry.out_qd, carry.out_active
     )
     # Saves after a terminal event stay inf rather than turning into NaN.
@@ -726,7 +573,7 @@ class _SegmentedSolution(eqx.Module):
     active: Bool[Array, "saves m_h"]
     modes: Int[Array, "saves k"]
     log: EventLog
-    failure: failures.Failure
+    failure: Failure
     stats: dict[str, Any]
 
 
