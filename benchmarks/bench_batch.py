@@ -18,8 +18,6 @@ Run: ``python -m benchmarks.bench_batch`` from the repository root.
 
 from __future__ import annotations
 
-from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
-
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -27,6 +25,7 @@ import jax.numpy as jnp
 import jaxlag as jl
 from jaxlag import simulate_batch
 
+from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
 from .bench_unconstrained import T, double_pendulum_explicit, double_pendulum_lagrangian, solve_hand
 
 #: (B, steps per call): about 1e5–2e5 state-steps per call above B = 1.

@@ -16,15 +16,17 @@ Run: ``python -m benchmarks.bench_compile`` from the repository root.
 
 from __future__ import annotations
 
-from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
-
 import time
 
 import jax
 
 import jaxlag as jl
 
-from . import bench_constrained, bench_unconstrained
+from . import (
+    bench_constrained,
+    bench_unconstrained,
+    common,  # first: pins the core and sets XLA_FLAGS before jax is imported
+)
 from .bench_unconstrained import with_jaxlag
 
 SIZES = (2, 5) if common.QUICK else (2, 5, 10, 20)

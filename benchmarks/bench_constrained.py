@@ -26,12 +26,11 @@ Run: ``python -m benchmarks.bench_constrained`` from the repository root.
 
 from __future__ import annotations
 
-from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
-
 import jax.numpy as jnp
 
 import jaxlag as jl
 
+from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
 from .bench_unconstrained import NSTEPS, hand, with_jaxlag
 
 G = 9.81

@@ -26,8 +26,6 @@ Run: ``python -m benchmarks.bench_ensemble`` from the repository root.
 
 from __future__ import annotations
 
-from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
-
 import warnings
 
 import diffrax
@@ -36,6 +34,7 @@ import jax.numpy as jnp
 
 import jaxlag as jl
 
+from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
 from .bench_batch import initial_states
 from .bench_unconstrained import G, T, double_pendulum_explicit, double_pendulum_lagrangian, solve_hand
 

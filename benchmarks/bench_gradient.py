@@ -32,13 +32,13 @@ Run: ``python -m benchmarks.bench_gradient`` from the repository root.
 
 from __future__ import annotations
 
-from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
-
 import diffrax
 import jax
 import jax.numpy as jnp
 
 import jaxlag as jl
+
+from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
 
 NSTEPS = 400 if common.QUICK else 2000
 T1 = 2.0

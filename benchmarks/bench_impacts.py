@@ -20,14 +20,14 @@ Run: ``python -m benchmarks.bench_impacts`` from the repository root.
 
 from __future__ import annotations
 
-from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
-
 import diffrax
 import jax
 import jax.numpy as jnp
 import optimistix as optx
 
 import jaxlag as jl
+
+from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
 
 G, H, SPAN = 9.81, 1.0, 3.0
 SEGMENTS = 24

@@ -36,8 +36,6 @@ docs/images/learned_benchmark.png; ``--report`` rebuilds both from the runs save
 
 from __future__ import annotations
 
-from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
-
 import datetime
 import json
 import os
@@ -55,6 +53,8 @@ import optax
 
 import jaxlag as jl
 from jaxlag import learned as jll
+
+from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
 
 QUICK = common.QUICK
 SIZES = (4, 8) if QUICK else tuple(int(s) for s in os.environ.get("BENCH_SIZES", "10,30,100").split(","))

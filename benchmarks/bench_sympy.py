@@ -34,8 +34,6 @@ Run: ``python -m benchmarks.bench_sympy`` from the repository root.
 
 from __future__ import annotations
 
-from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
-
 import os
 import signal
 import statistics
@@ -49,6 +47,7 @@ import numpy as np
 import jaxlag as jl
 from jaxlag import simulate_batch
 
+from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
 from .bench_unconstrained import (
     G,
     double_pendulum_explicit,

@@ -23,12 +23,12 @@ Run: ``python -m benchmarks.bench_unconstrained`` from the repository root.
 
 from __future__ import annotations
 
-from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
-
 import diffrax
 import jax.numpy as jnp
 
 import jaxlag as jl
+
+from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
 
 G = 9.81
 T = 1.0

@@ -40,8 +40,6 @@ Run: ``python -m benchmarks.bench_variational`` from the repository root (â‰ˆ 2â
 
 from __future__ import annotations
 
-from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
-
 import math
 import time
 
@@ -54,6 +52,7 @@ import jaxlag as jl
 from jaxlag._variational import simulate_variational
 
 from . import bench_constrained as bc
+from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
 
 G = 9.81
 NSTEPS = 200 if common.QUICK else 1000

@@ -20,8 +20,9 @@ import os
 import statistics
 import sys
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any
 
 if "jax" in sys.modules:  # pragma: no cover - a guard for misuse
     print("warning: benchmarks.common imported after jax; XLA_FLAGS may not take effect", file=sys.stderr)

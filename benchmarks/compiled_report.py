@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import re
 
-from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
-
 import jax
 
 import jaxlag as jl
@@ -24,6 +22,7 @@ from jaxlag._mechanics import kkt as kkt
 
 from . import bench_constrained as bc
 from . import bench_unconstrained as bu
+from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
 
 
 def summary(text: str, n: int) -> str:

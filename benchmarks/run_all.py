@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import time
 
-from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
 from . import (
     bench_batch,
     bench_compile,
@@ -16,6 +15,7 @@ from . import (
     bench_gradient,
     bench_sympy,
     bench_unconstrained,
+    common,  # first: pins the core and sets XLA_FLAGS before jax is imported
 )
 from .verdicts import best_hand_verdicts, print_verdicts
 

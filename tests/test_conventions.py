@@ -79,9 +79,9 @@ def test_host_values_become_jax_arrays_without_compiling():
     """as_jax_array / as_array_leaves give what jnp.asarray gives (value, dtype, weak type) for
     host values, and compile no device program for them (jnp.asarray compiles a copy per shape
     of a NumPy array and a conversion per dtype change)."""
-    from jaxlag._conventions import as_array_leaves, as_jax_array
-
     from test_batch import CompileCounter
+
+    from jaxlag._conventions import as_array_leaves, as_jax_array
 
     with CompileCounter() as compiles:
         shape = (3, 7)  # a shape no other test converts

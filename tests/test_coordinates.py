@@ -19,8 +19,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxlag as jl
-from jaxlag import analysis
-from jaxlag import coordinates
+from jaxlag import analysis, coordinates
 
 jax.config.update("jax_enable_x64", True)
 

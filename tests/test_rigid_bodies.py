@@ -21,11 +21,7 @@ from hypothesis import strategies as st
 
 import jaxlag as jl
 import jaxlag.systems as systems
-from jaxlag import analysis
-from jaxlag import contact
-from jaxlag import coordinates
-from jaxlag import loads
-from jaxlag import rotations
+from jaxlag import analysis, contact, coordinates, loads, rotations
 
 jax.config.update("jax_enable_x64", True)
 

@@ -2,15 +2,15 @@ r"""Reverse-mode derivatives of a simulation: forward sensitivities where they p
 
 For a loss of a trajectory in a few parameters θ (k scalars) forward-mode differentiation costs
 about ``1 + 0.43 k`` forward passes, while diffrax's checkpointed reverse mode costs 5.5–7.5
-whatever k is (measured in ``benchmarks/``). :class:`ForwardSensitivities`, the default adjoint of
-:func:`~jaxlag.simulate`, makes ``jax.grad``/``jax.vjp`` pick the cheaper one while tracing:
+whatever k is (measured in ``benchmarks/``). `ForwardSensitivities`, the default adjoint of
+[`simulate`][jaxlag.simulate], makes ``jax.grad``/``jax.vjp`` pick the cheaper one while tracing:
 
 * the simulation is a ``custom_vjp`` with symbolic zeros, so its forward rule knows which inputs
   are actually differentiated (``args`` leaves, ``q0``, ``qd0``, times: the "perturbed" ones)
   and how many scalars k they hold;
 * k ≤ ``max_tangents`` (and the sensitivities fit in ``max_bytes``): the simulation is pushed
   forward along the k unit directions at once: by ``run.push_along`` when the run offers it
-  (``simulate``'s one-loop tangent solve, :mod:`jaxlag._solver.tangent_solve`), else ``jax.jvp``
+  (``simulate``'s one-loop tangent solve, `jaxlag._solver.tangent_solve`), else ``jax.jvp``
   through diffrax's ``ForwardMode`` under ``jax.vmap``; the sensitivities
   ``S = ∂(outputs)/∂θ`` are kept and the backward pass is one contraction ``θ̄ = Sᵀȳ``.
   Memory: k times the saved outputs, not the solver's steps;
@@ -47,13 +47,13 @@ from . import _compile as compilation
 
 
 class ForwardSensitivities(eqx.Module):
-    """Default ``adjoint=`` of :func:`~jaxlag.simulate`: forward sensitivities for few inputs.
+    """Default ``adjoint=`` of [`simulate`][jaxlag.simulate]: forward sensitivities for few inputs.
 
     ``jax.grad`` uses forward sensitivities when at most ``max_tangents`` scalars are
     differentiated and ``k ×`` (the saved outputs) is at most ``max_bytes``; otherwise the
     ``fallback`` adjoint's reverse pass. ``inner`` pushes the tangents (``diffrax.ForwardMode()``).
     The default ``max_tangents = 10`` is the measured crossover (k ≈ 11–14 for a double pendulum).
-    See :mod:`jaxlag._adjoint`.
+    See `jaxlag._adjoint`.
     """
 
     max_tangents: int = eqx.field(static=True, default=10)
@@ -96,7 +96,7 @@ def trace_outputs(run: Callable[[Any, Any], Any], inputs: Any, adjoint) -> tuple
     ``run`` is traced abstractly once (``jax.make_jaxpr``, the inputs' arrays replaced by their
     shapes) and the constants of the jaxpr are inspected: a closed-over parameter of an enclosing
     ``grad``/``jit``/``vmap`` shows up there as a tracer. The same trace gives the output shapes
-    the forward rule of :func:`call_with_forward_sensitivities` needs, and fills JAX's tracing
+    the forward rule of `call_with_forward_sensitivities` needs, and fills JAX's tracing
     cache of the jitted solver that the forward rule traces again. Anything that prevents the
     analysis counts as "yes" (the caller then takes the general path).
     """
@@ -121,7 +121,7 @@ def trace_outputs(run: Callable[[Any, Any], Any], inputs: Any, adjoint) -> tuple
 
 def captures_traced_values(probe: Callable[[Any], Any], inputs: Any) -> bool:
     """Whether ``probe(inputs)`` captures traced values other than its inputs: the test of
-    :func:`trace_outputs` on a cheaper function (``simulate``: the system's functions evaluated
+    `trace_outputs` on a cheaper function (``simulate``: the system's functions evaluated
     once instead of the solver loop), which must call every user function the run calls.
     Anything that prevents the analysis counts as "yes"."""
     dynamic, static = eqx.partition(inputs, eqx.is_array)
@@ -181,7 +181,7 @@ def _push(run, static, adjoint, primals, tangents, axes, structure):
     """``run`` and its derivatives along the k unit directions: one compiled program
     (``jax.jvp`` under ``jax.vmap``), reused by every call with equal ``run``, static inputs
     and shapes. Inside it the solver's own jitted function is traced as in
-    :func:`trace_outputs`, so JAX's tracing cache serves it. Returns ``(outputs, tangents,
+    `trace_outputs`, so JAX's tracing cache serves it. Returns ``(outputs, tangents,
     rest, static)``: the non-array leaves of the output (``static``) are returned by
     ``filter_jit``, not by the transformations."""
     box: dict[str, Any] = {}
@@ -206,7 +206,7 @@ def _push(run, static, adjoint, primals, tangents, axes, structure):
 
 class AbstractPushingRun(eqx.Module):
     """A run ``run(inputs, adjoint)`` that can compute its own forward sensitivities (e.g.
-    ``simulate``'s one-loop tangent solve), which :func:`call_with_forward_sensitivities` would
+    ``simulate``'s one-loop tangent solve), which `call_with_forward_sensitivities` would
     otherwise get by ``jax.vmap`` of ``jax.jvp`` of the whole run. Any other callable takes that
     general path."""
 
@@ -216,7 +216,7 @@ class AbstractPushingRun(eqx.Module):
 
     @abc.abstractmethod
     def solves_with_tangents(self, inputs: Any, perturbed: list[bool] | None) -> bool:
-        """Whether :meth:`push_along` applies when the inexact input leaves flagged in
+        """Whether `push_along` applies when the inexact input leaves flagged in
         ``perturbed`` (leaf order) are differentiated; ``None``: for some perturbed inputs."""
 
     @abc.abstractmethod
@@ -241,12 +241,12 @@ def call_with_forward_sensitivities(
     prepare: Callable[[Any], Any] | None = None,
     check_residuals: Callable[[Any, Any], Any] | None = None,
 ) -> Any:
-    """``run(inputs, adjoint)``, reverse-differentiated as :class:`ForwardSensitivities` says.
+    """``run(inputs, adjoint)``, reverse-differentiated as `ForwardSensitivities` says.
 
     ``inputs`` is any pytree; its floating-point array leaves are the differentiable inputs.
     ``run(inputs, choice.inner)`` must be differentiable in forward mode (it also computes the
     undifferentiated values) and ``run(inputs, choice.fallback)`` in reverse mode.
-    ``output_shapes``: the output shapes of ``run`` if known (:func:`trace_outputs`; saves a
+    ``output_shapes``: the output shapes of ``run`` if known (`trace_outputs`; saves a
     trace). ``finish``: applied to the primal output (where its values are concrete when the
     caller is not being traced: ``simulate`` raises its failures there, on the host); it must not
     change the values. ``prepare``: applied to the (undifferentiated) inputs before ``run``, in

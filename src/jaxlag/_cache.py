@@ -1,7 +1,7 @@
 """Opt-in cross-process compilation cache: JAX's own persistent cache in a checked directory.
 
 Nothing here runs on ``import jaxlag``: JAX's configuration is the user's. A research script that
-wants its second run to skip XLA compilation calls :func:`enable_compilation_cache` once, before
+wants its second run to skip XLA compilation calls `enable_compilation_cache` once, before
 its first computation::
 
     import jaxlag as jl
@@ -23,7 +23,7 @@ because whoever can write a cache entry chooses the code the next run executes:
   directory specification says to ignore relative ones); an empty or relative ``HOME`` with no
   usable ``XDG_CACHE_HOME`` is an error, not ``/.cache``.
 
-An unsafe directory is refused with :class:`UnsafeCacheDirectory`, whose message says which
+An unsafe directory is refused with `UnsafeCacheDirectory`, whose message says which
 path and why. JAX itself writes and
 reads them through its own file cache (a truncated entry, from a writer killed mid-write, is
 reported by JAX with a warning and the program compiled again); jaxlag stores no Python objects
@@ -64,7 +64,7 @@ def default_cache_directory() -> Path:
     """``$XDG_CACHE_HOME/jaxlag/jax``, or ``$HOME/.cache/jaxlag/jax``; only absolute values of
     those variables are used.
 
-    Raises :class:`UnsafeCacheDirectory` when neither is an absolute path."""
+    Raises `UnsafeCacheDirectory` when neither is an absolute path."""
     base = _absolute_env("XDG_CACHE_HOME")
     if base is None:
         home = _absolute_env("HOME")
@@ -128,7 +128,7 @@ def checked_cache_directory(
     path: str | os.PathLike | None = None, *, max_entry_bytes: int = DEFAULT_MAX_ENTRY_BYTES
 ) -> Path:
     """Create (mode 0700) or check the cache directory and return its absolute path; see the
-    module docstring for the rules. Raises :class:`UnsafeCacheDirectory`."""
+    module docstring for the rules. Raises `UnsafeCacheDirectory`."""
     directory = default_cache_directory() if path is None else Path(path)
     if not directory.is_absolute():
         directory = Path.cwd() / directory
@@ -159,14 +159,14 @@ def enable_compilation_cache(
 
     **Arguments:**
 
-    - ``path``: the cache directory; default :func:`default_cache_directory`.
+    - ``path``: the cache directory; default `default_cache_directory`.
     - ``max_entry_bytes``: refuse a directory holding a larger entry.
     - ``min_compile_time_secs``: programs that compile faster than this are not stored (JAX's
       own default is 1 s, which would skip most of jaxlag's programs).
 
     This sets ``jax_compilation_cache_dir`` and ``jax_persistent_cache_min_compile_time_secs``
     for the whole process, which is why it is the user's call and never done on import. Call it
-    before the first computation. Raises :class:`UnsafeCacheDirectory` (and changes nothing)
+    before the first computation. Raises `UnsafeCacheDirectory` (and changes nothing)
     when the directory is not safe to load programs from.
 
     JAX does not store programs that contain host callbacks; a ``jl.simulate`` whose save times

@@ -8,7 +8,7 @@ still stops the computation.
 The compiled checks compute no eigen-decomposition and no SVD: definiteness of ``M`` (its
 condition number within a factor n, ``max_i M_ii · trace(M⁻¹)`` from the factor) and
 independence of the constraint rows are read from Cholesky factors
-(:func:`jaxlag._mechanics.mass_solve.pivots_pass`, :func:`~jaxlag._mechanics.mass_solve.independent_rows`),
+(`jaxlag._mechanics.mass_solve.pivots_pass`, `independent_rows`),
 written out or looped in ``jax.numpy``. Batched LAPACK eigen-solvers under
 ``jit(vmap(grad(...)))`` deadlocked jaxlib 0.10's CPU thread pool, and cost more than the
 solve they guard. The eager (host) diagnosis still reports the eigenvalues of ``M`` and the
@@ -44,7 +44,7 @@ from ._tolerances import (
 
 
 class Checks(eqx.Module):
-    """The input checks of :func:`~jaxlag.simulate` (``checks=jl.Checks(...)``).
+    """The input checks of [`simulate`][jaxlag.simulate] (``checks=jl.Checks(...)``).
 
     - ``initial_state``: check ``(q0, qd0)`` before integrating and raise ``ValueError`` if the
       state is non-finite, the mass matrix ``M = ∂²L/∂q̇²`` is singular or not positive
@@ -53,7 +53,7 @@ class Checks(eqx.Module):
       the state is off the constraint manifold (``|f|``, ``|ḟ|``, ``|g|``) by more than
       ``constraint_tolerance``. Concrete inputs are checked eagerly on the host (the message
       names the numbers and the constraints); traced ones compile the check into the program.
-      See :func:`~jaxlag.consistent_initial_state` to project an approximate state.
+      See [`consistent_initial_state`][jaxlag.consistent_initial_state] to project an approximate state.
     - ``times``: traced save times ``ts`` (inside ``jit``/``vmap``) are checked to increase
       inside the compiled program. Pass ``False`` when you have checked them yourself (as
       ``jl.fit`` does once on the host): the program then has no host callback for them, so
@@ -63,7 +63,7 @@ class Checks(eqx.Module):
       float32.
 
     ``jl.Checks(initial_state=False)`` skips the initial-state check (e.g. when the state comes
-    from :func:`~jaxlag.consistent_initial_state` in the same program).
+    from [`consistent_initial_state`][jaxlag.consistent_initial_state] in the same program).
     """
 
     initial_state: bool = eqx.field(static=True, default=True)
@@ -87,13 +87,14 @@ class AbstractLagrangianChecks(abc.ABC):
     """Checks that a Lagrangian carries for its own parameters, run with the initial-state check.
 
     The hook by which a Lagrangian built by an add-on adds checks that only it can make, without
-    the core importing the add-on: :func:`jaxlag.coordinates.lagrangian_from_positions` returns a
+    the core importing the add-on:
+    [`jaxlag.coordinates.lagrangian_from_positions`][jaxlag.coordinates.lagrangian_from_positions] returns a
     Lagrangian that implements this interface and checks its bodies (masses, inertias, the pose
-    ``R(q0)``, gimbal lock). ``System.lagrangian.fn`` is asked (:func:`lagrangian_checks`); a
-    plain function has no checks of its own and gets :class:`NoLagrangianChecks`. The three
+    ``R(q0)``, gimbal lock). ``System.lagrangian.fn`` is asked (`lagrangian_checks`); a
+    plain function has no checks of its own and gets `NoLagrangianChecks`. The three
     methods are the three ways a check runs: eagerly or compiled in a program
-    (:meth:`check_initial_state`), or as values that a batch program returns to the host
-    (:meth:`initial_state_diagnostics`, then :meth:`raise_for_diagnostics`).
+    (`check_initial_state`), or as values that a batch program returns to the host
+    (`initial_state_diagnostics`, then `raise_for_diagnostics`).
     """
 
     @abc.abstractmethod
@@ -107,13 +108,13 @@ class AbstractLagrangianChecks(abc.ABC):
     def initial_state_diagnostics(
         self, system, q: Float[Array, " n"], qd: Float[Array, " n"], t, args: Args
     ) -> PyTree | None:
-        """The checks of :meth:`check_initial_state` as values, traceable and without a callback,
+        """The checks of `check_initial_state` as values, traceable and without a callback,
         or ``None`` when there is nothing to check."""
 
     @abc.abstractmethod
     def raise_for_diagnostics(self, system, diagnostics: PyTree | None, q) -> None:
         """Raise ``ValueError`` with the numbers for the first batch member whose
-        :meth:`initial_state_diagnostics` fail (``diagnostics`` and ``q`` with or without a
+        `initial_state_diagnostics` fail (``diagnostics`` and ``q`` with or without a
         leading batch axis)."""
 
 
@@ -131,7 +132,7 @@ class NoLagrangianChecks(AbstractLagrangianChecks):
 
 
 def lagrangian_checks(system) -> AbstractLagrangianChecks:
-    """The checks that ``system``'s Lagrangian carries, or :class:`NoLagrangianChecks`."""
+    """The checks that ``system``'s Lagrangian carries, or `NoLagrangianChecks`."""
     fn = system.lagrangian.fn
     return fn if isinstance(fn, AbstractLagrangianChecks) else NoLagrangianChecks()
 
@@ -151,7 +152,7 @@ def initial_activity(system, q, t, args, tolerance):
 def _diagnostics(system, q, qd, t, args, tolerance, spectra=True):
     """``(values, failures)`` at the initial state, in one compiled call (one host transfer).
     ``spectra=False``: without the definiteness and rank tests, and without the failures that
-    need them (``None``): for :func:`_diagnostics_on_host`, which computes the eigenvalues and
+    need them (``None``): for `_diagnostics_on_host`, which computes the eigenvalues and
     singular values with NumPy instead."""
     values = _diagnostic_values(system, q, qd, t, args, tolerance, spectra)
     if not spectra:
@@ -160,7 +161,7 @@ def _diagnostics(system, q, qd, t, args, tolerance, spectra=True):
 
 
 def _diagnostics_on_host(system, q, qd, t, args, tolerance):
-    """``(values, failures)`` of :func:`_diagnostics` as host (NumPy) values, the spectra
+    """``(values, failures)`` of `_diagnostics` as host (NumPy) values, the spectra
     computed by NumPy: the program then has no LAPACK call, whose first lowering in a process
     costs ~0.1 s (JAX registers its kernels), more than the whole check. ``None`` if the
     values are traced (a user function closing over a traced value)."""
@@ -277,11 +278,11 @@ def unmarked_batch_hint(args, args_axes) -> str:
 
 
 def _failures(d, least_squares: bool, tolerance: float, xp=jnp, check_mass: bool = True):
-    """Which checks fail, from :func:`_diagnostic_values` (``xp``: ``jax.numpy`` in a program,
+    """Which checks fail, from `_diagnostic_values` (``xp``: ``jax.numpy`` in a program,
     ``numpy`` on the host). In a program the definiteness and rank tests are Cholesky pivots
     (``mass_ok``, ``rows_independent``); on the host the eigenvalues and singular values (the
     same thresholds, ``MASS_RCOND`` and ``CONSTRAINT_RCOND``). ``check_mass=False``
-    (:class:`~jaxlag.RobustSolve`): a mass matrix that is not positive definite is no error."""
+    ([`RobustSolve`][jaxlag.RobustSolve]): a mass matrix that is not positive definite is no error."""
     dtype = d["mass"].dtype
     if "eigenvalues" in d:
         eig = d["eigenvalues"]
@@ -514,7 +515,7 @@ def _initial_message(d, fail, static: _Static, where: str = "at the initial stat
 
 
 def _batched_initial_message(static: _Static, payload) -> str | None:
-    """:func:`_initial_message` for the first failed member of a (possibly batched) payload."""
+    """`_initial_message` for the first failed member of a (possibly batched) payload."""
 
     d, fail = payload
     flags = ft.reduce(np.logical_or, [np.asarray(x) for x in fail.values()])
@@ -564,7 +565,7 @@ def validate_initial_state(system, q, qd, t, args, tolerance: float | None):
 
 def initial_state_diagnostics(system, q, qd, t, args, tolerance):
     """``(values, failures)`` of the initial-state check as values (traceable, no callback):
-    for programs that return their checks to the host (:func:`raise_for_initial_states`)."""
+    for programs that return their checks to the host (`raise_for_initial_states`)."""
     d, fail = _diagnostics(system, q, qd, t, args, tolerance)
     own = lagrangian_checks(system).initial_state_diagnostics(system, q, qd, t, args)
     return dict(d, q=q, qd=qd, lagrangian=own), fail
@@ -572,7 +573,7 @@ def initial_state_diagnostics(system, q, qd, t, args, tolerance):
 
 def raise_for_initial_states(system, diagnostics, args, tolerance) -> None:
     """Raise ``ValueError`` on the host for the first failing member of (batched)
-    :func:`initial_state_diagnostics`, with the message of :func:`validate_initial_state`."""
+    `initial_state_diagnostics`, with the message of `validate_initial_state`."""
     d, fail = jax.device_get(diagnostics)
     # The Lagrangian's own checks first, as in validate_initial_state.
     lagrangian_checks(system).raise_for_diagnostics(system, d.get("lagrangian"), d["q"])
@@ -700,7 +701,7 @@ def check_state_result(system, what: str, out, q, qd, t, args):
     definiteness is checked, with the thresholds of the initial-state check: eigenvalues on the
     host, Cholesky pivots in a program). Eager for concrete values (the diagnostics program is
     the one ``simulate``'s check compiles); compiled in otherwise, with no eigen-decomposition
-    or SVD. Not called for :class:`~jaxlag.RobustSolve` systems, whose failed states are NaN."""
+    or SVD. Not called for [`RobustSolve`][jaxlag.RobustSolve] systems, whose failed states are NaN."""
 
     tolerance = default_constraint_tolerance(jnp.result_type(q))
     static = _Static(tuple(system.unilateral), tolerance, tuple(_inexact_names(args)))

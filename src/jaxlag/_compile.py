@@ -12,8 +12,8 @@ latency-bound programs. Measured on this project's 2-core CPU machine (``benchma
   Cartesian chain 1.00×, same process, alternating, medians).
 
 Every program jaxlag compiles itself (``simulate``, ``simulate_batch``, ``fit``, the checks, the
-derived quantities of a trajectory, ...) is jitted by :func:`filter_jit`, which passes
-:func:`compiler_options` to ``jax.jit`` when the default backend is the CPU (on GPUs and TPUs
+derived quantities of a trajectory, ...) is jitted by `filter_jit`, which passes
+`compiler_options` to ``jax.jit`` when the default backend is the CPU (on GPUs and TPUs
 nothing changes). Inside a user's own ``jax.jit`` the outer program's options apply: pass
 ``compiler_options=jl.compiler_options()`` to it to get the same compile time. Set the
 environment variable ``JAXLAG_COMPILER_OPTIONS=0`` to compile with XLA's defaults (as happens
@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import functools
 import os
-from typing import Any, Callable, overload
+from collections.abc import Callable
+from typing import Any, overload
 
 import equinox as eqx
 import jax
@@ -100,7 +101,7 @@ def no_transformation_active() -> bool:
 
 
 class _BackendJit:
-    """``eqx.filter_jit(fn)`` that compiles with :func:`compiler_options` of the default backend.
+    """``eqx.filter_jit(fn)`` that compiles with `compiler_options` of the default backend.
 
     Two wrappers are kept (tuned and plain); which one runs is chosen at each call: tuned when
     the call compiles its own program on the CPU, plain when it is traced into an enclosing
@@ -136,7 +137,7 @@ def filter_jit(fn: None = None, **jitkwargs: Any) -> Callable[[Callable], _Backe
 @overload
 def filter_jit(fn: Callable, **jitkwargs: Any) -> _BackendJit: ...
 def filter_jit(fn: Callable | None = None, **jitkwargs: Any) -> Any:
-    """``equinox.filter_jit`` compiling with :func:`compiler_options` (usable as a decorator)."""
+    """``equinox.filter_jit`` compiling with `compiler_options` (usable as a decorator)."""
     if fn is None:
         return functools.partial(filter_jit, **jitkwargs)
     return _BackendJit(fn, jitkwargs)
@@ -147,7 +148,7 @@ def jit(fn: None = None, **jitkwargs: Any) -> Callable[[Callable], jax.stages.Wr
 @overload
 def jit(fn: Callable, **jitkwargs: Any) -> jax.stages.Wrapped: ...
 def jit(fn: Callable | None = None, **jitkwargs: Any) -> Any:
-    """``jax.jit`` compiling with :func:`compiler_options` when it is a top-level program."""
+    """``jax.jit`` compiling with `compiler_options` when it is a top-level program."""
     if fn is None:
         return functools.partial(jit, **jitkwargs)
     options = compiler_options() if _compiled_at_top_level() else {}

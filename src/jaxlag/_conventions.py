@@ -12,7 +12,7 @@ jaxlag passes the state positionally and the rest by keyword:
 ``def L(q, qd, t, args)`` all work without ceremony. ``args`` is any pytree of parameters:
 ``jax.grad`` and ``jax.vmap`` flow through it. Closures over traced values work too.
 
-The signature is read once, when the function is wrapped, with :func:`inspect.signature`.
+The signature is read once, when the function is wrapped, with `inspect.signature`.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 r"""The eager diagnosis of a failed simulation: the host-side message, with the numbers.
 
-A compiled program raises only the static :attr:`~jaxlag._errors.FailureCode.message` of its
-failure. Called eagerly (concrete inputs), :func:`raise_if_failed` fetches the
-:class:`~jaxlag._errors.Failure` record and builds the full message here: where and when the run
+A compiled program raises only the static `message` of its
+failure. Called eagerly (concrete inputs), `raise_if_failed` fetches the
+`Failure` record and builds the full message here: where and when the run
 stopped, the state, and for the failing state a diagnosis by small compiled probes (which
 quantity is non-finite: ``L``, ``M``, ``F``, constraints or accelerations; the eigenvalues of
 ``M``; a discontinuity of ``q̈`` that the state is stuck at, or a fast mode that holds the steps
@@ -193,7 +193,7 @@ def _accelerations(system, q, qd, t, args):
 @compilation.filter_jit
 def _linearization(system, q, qd, t, args):
     """``ẏ`` and ``∂ẏ/∂y`` of the first-order system ``y = (q, q̇)``, ``ẏ = (q̇, q̈)``, and the
-    screen of :func:`_step_limit`: for each component ``y_j``, the change of ``q̈``
+    screen of `_step_limit`: for each component ``y_j``, the change of ``q̈``
     across ``y_j ± δ_j`` (``δ_j = 10⁻² (1 + |y_j|)``) and what the derivative predicts for it."""
     n = q.shape[0]
 
@@ -215,7 +215,7 @@ def _linearization(system, q, qd, t, args):
 @compilation.filter_jit
 def _bisect(system, q, qd, t, args, j):
     """Locate where ``q̈`` jumps as component ``j`` of ``y = (q, q̇)`` moves through
-    ``y_j ± δ_j`` (the interval of :func:`_linearization`'s screen): bisection on the larger
+    ``y_j ± δ_j`` (the interval of `_linearization`'s screen): bisection on the larger
     change. Returns the final bracket ``(a, b)`` and ``q̈`` at its ends; for a smooth ``q̈`` the
     change across the final bracket vanishes with its width, across a discontinuity it does not."""
     n = q.shape[0]
@@ -490,8 +490,8 @@ def message(failure: Failure, system=None, args=None, *, args_batched=False) -> 
 
 
 def raise_if_failed(failure: Failure, system=None, args=None, *, args_batched=False) -> None:
-    """Raise :class:`~jaxlag._errors.SimulationError` eagerly if the (concrete) record says the
-    run failed: the host counterpart of :func:`jaxlag._errors.error_if_failed`."""
+    """Raise `SimulationError` eagerly if the (concrete) record says the
+    run failed: the host counterpart of `jaxlag._errors.error_if_failed`."""
     host = jax.device_get(failure)  # one transfer; blocks until the simulation is done
     text = message(host, system, args, args_batched=args_batched)
     if text is not None:

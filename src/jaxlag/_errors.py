@@ -1,35 +1,35 @@
 r"""Run-time failures of a simulation: the results enumeration, the record and the compiled check.
 
 Three things can stop an integration after the initial state has passed its checks
-(:mod:`jaxlag._checks`):
+(`jaxlag._checks`):
 
-* **non-finite equations of motion** (:attr:`FailureCode.NONFINITE`): a step produces NaN/inf
+* **non-finite equations of motion** (`FailureCode.NONFINITE`): a step produces NaN/inf
   (``q**1.5`` of a negative coordinate, a mass matrix that becomes exactly singular, a NaN that
   a force function returns) and no smaller step helps;
-* **the step size collapses** (:attr:`FailureCode.STEP_SIZE_COLLAPSED`): steps are rejected down
+* **the step size collapses** (`FailureCode.STEP_SIZE_COLLAPSED`): steps are rejected down
   to round-off of ``t`` although every trial state is finite, the signature of a finite-time
   singularity (``M`` becoming singular, a velocity blowing up);
-* **``max_steps``** (:attr:`FailureCode.MAX_STEPS`) and **``max_segments``**
-  (:attr:`FailureCode.MAX_SEGMENTS`) are reached, or diffrax reports another failure
-  (:attr:`FailureCode.SOLVER`).
+* **``max_steps``** (`FailureCode.MAX_STEPS`) and **``max_segments``**
+  (`FailureCode.MAX_SEGMENTS`) are reached, or diffrax reports another failure
+  (`FailureCode.SOLVER`).
 
 Detection costs a few scalar operations per step: the user's step-size controller is wrapped in
-:class:`~jaxlag._solver.guard.FiniteStepGuard`, which ends the solve (diffrax result
+`FiniteStepGuard`, which ends the solve (diffrax result
 ``dt_min_reached``) as soon as a step is non-finite and cannot be shrunk further (at once for a
 constant step size), and which carries the time reached, the last step size and the last
 accepted state in its state. Without it an adaptive controller rejects NaN steps by shrinking
 ``dt`` until ``t + dt == t`` and then spins until ``max_steps`` (65,536 wasted steps and the
 wrong message).
 
-Every simulation returns a :class:`Failure` record in ``Trajectory.failure``; ``simulate`` then
-raises :class:`SimulationError` (``throw=True``, the default):
+Every simulation returns a `Failure` record in ``Trajectory.failure``; ``simulate`` then
+raises `SimulationError` (``throw=True``, the default):
 
 * called eagerly (concrete inputs), after the compiled call, synchronously on every backend, with
-  the numbers and a diagnosis of the failing state (:mod:`jaxlag._diagnosis`: which quantity is
+  the numbers and a diagnosis of the failing state (`jaxlag._diagnosis`: which quantity is
   non-finite, the eigenvalues of ``M``, the steps that would be needed);
 * inside a transformation (``jit``, ``vmap``, ``grad``), from the compiled program by
-  :func:`error_if_failed` (``eqx.branched_error_if``) with the static
-  :attr:`FailureCode.message` of the cause; the numbers stay in the returned record. With
+  `error_if_failed` (``eqx.branched_error_if``) with the static
+  `FailureCode.message` of the cause; the numbers stay in the returned record. With
   ``throw=False`` nothing is raised and ``traj.raise_if_failed()`` raises the full message, with
   the numbers, later and eagerly.
 """
@@ -60,9 +60,9 @@ class FailureCode(enum.IntEnum):
     these members, e.g. ``traj.failure.code == jl.FailureCode.MAX_STEPS``, inside or outside
     ``jit``. That is why this is an ``int`` enumeration and not an ``eqx.Enumeration`` (as
     diffrax's ``RESULTS``): its members are plain integers that ``jnp.where`` and ``==`` take as
-    they are. Each member's :attr:`message` is the static message raised from a compiled
-    program (:func:`~jaxlag._errors.error_if_failed`); the eager message, with the numbers, is
-    built on the host (:mod:`jaxlag._diagnosis`).
+    they are. Each member's `message` is the static message raised from a compiled
+    program (`error_if_failed`); the eager message, with the numbers, is
+    built on the host (`jaxlag._diagnosis`).
 
     - ``COMPLETED`` (0): the run reached its end time (or a terminal event).
     - ``NONFINITE`` (1): the equations of motion became non-finite (NaN or inf) and a smaller
@@ -119,10 +119,10 @@ class SimulationError(RuntimeError):
 
 # ----------------------------------------------------------------------------- the record
 class Failure(eqx.Module):
-    """How a simulation ended. ``code``: a :class:`FailureCode` value; ``t``: time reached;
+    """How a simulation ended. ``code``: a `FailureCode` value; ``t``: time reached;
     ``dt``: last step size tried; ``q``, ``qd``: last accepted state; ``t0``, ``t1``: the
     interval; ``num_steps``: steps taken; ``result``: diffrax's result (for
-    :attr:`FailureCode.SOLVER`); ``max_steps``, ``max_segments``: the limits the run had (for the
+    `FailureCode.SOLVER`); ``max_steps``, ``max_segments``: the limits the run had (for the
     messages). Every array carries the batch axes first (``*batch``); after ``jax.device_get``
     they are NumPy arrays."""
 
@@ -151,7 +151,7 @@ def from_solution(
     max_steps: int | None = None,
     max_segments: int | None = None,
 ) -> Failure:
-    """The :class:`Failure` of one ``diffeqsolve`` (run with ``throw=False`` and the guard's
+    """The `Failure` of one ``diffeqsolve`` (run with ``throw=False`` and the guard's
     state saved; a ``StepTo`` controller has none and is judged by its saved states)."""
     state = solution.controller_state
     result = solution.result
@@ -217,9 +217,9 @@ _MESSAGES = tuple(code.message for code in FailureCode)
 
 
 def error_if_failed(failure: Failure, x: PyTree[Array]) -> PyTree[Array]:
-    """Compiled counterpart of :func:`jaxlag._diagnosis.raise_if_failed`: ``x`` (a pytree of
+    """Compiled counterpart of `jaxlag._diagnosis.raise_if_failed`: ``x`` (a pytree of
     floating-point arrays), or an ``eqx.branched_error_if`` with the static
-    :attr:`FailureCode.message` of the failure's code (the record itself stays in the
+    `FailureCode.message` of the failure's code (the record itself stays in the
     trajectory).
 
     The check must survive dead-code elimination in programs that use only derivatives of ``x``

@@ -6,10 +6,10 @@ one ``diffrax.diffeqsolve`` with a fixed set of active constraints, ended by the
 
 * release: ``min_i λ_i`` over the active unilateral constraints reaching zero from above;
 * contact: ``min_i f_i`` over the inactive ones reaching zero from above;
-* a friction switch of a :class:`~jaxlag.Coulomb` contact (:mod:`jaxlag._mechanics.friction`):
+* a friction switch of a [`Coulomb`][jaxlag.Coulomb] contact (`jaxlag._mechanics.friction`):
   ``s v_t`` of a slipping one or ``μ λ_N − |λ_t|`` of a sticking one reaching zero from above
   (the mode of each contact, 0 stick or ``s = ±1`` slip, is fixed in a segment);
-* a crossing of a user :class:`Event` condition ``c_k``: ``σ_k c_k`` reaching zero from above,
+* a crossing of a user `Event` condition ``c_k``: ``σ_k c_k`` reaching zero from above,
   where ``σ_k = ±1`` is the side ``c_k`` starts the segment on.
 
 With user conditions these are given to diffrax as one condition, their minimum, so that the
@@ -19,7 +19,7 @@ event. (Releases and contacts alone are two diffrax conditions, as the minimum o
 already one quantity per kind.)
 
 At a release the constraint is switched off; at a contact the impact law of
-:class:`~jaxlag.Unilateral` (:mod:`jaxlag._mechanics.impacts`) gives the velocity jump: with
+[`Unilateral`][jaxlag.Unilateral] (`jaxlag._mechanics.impacts`) gives the velocity jump: with
 restitution 0 (the default) the perfectly plastic ``q̇⁺ = q̇⁻ − M⁻¹Jᵀ(JM⁻¹Jᵀ)⁻¹J q̇⁻`` (the
 mass-weighted projection onto the constraint's tangent space) and the constraint engages; with
 ``e > 0`` Newton's law ``ḟ⁺ = −e ḟ⁻`` and the body leaves (the constraint stays off), unless the
@@ -30,11 +30,11 @@ constraints acting after it. The impulse of each jump is recorded (``EventLog.im
 event ends the simulation; saved times after it hold ``inf`` (diffrax's convention). Each user
 condition carries the side (sign) it is on into the next segment, so that the ~0 it starts
 from after its own event, or an exact 0 at ``t0``, is not taken for a crossing
-(:class:`Event` states the semantics).
+(`Event` states the semantics).
 
-This module holds what users write and read (:class:`Event`, :class:`Events`, :class:`EventLog`);
+This module holds what users write and read (`Event`, `Events`, `EventLog`);
 the loop that runs the segments, a ``lax.scan`` of fixed length ``max_segments`` that compiles
-once and works under ``vmap`` and ``grad``, is :mod:`jaxlag._segment_loop`.
+once and works under ``vmap`` and ``grad``, is `jaxlag._segment_loop`.
 """
 
 import enum
@@ -44,9 +44,9 @@ from collections.abc import Callable
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from ._conventions import UserFunction, wrap_event_function, wrap_state_function
@@ -54,15 +54,15 @@ from ._conventions import UserFunction, wrap_event_function, wrap_state_function
 
 class EventKind(enum.IntEnum):
     """What ended a segment of the segmented integration: the values of
-    :attr:`EventLog.kind <jaxlag.EventLog>`. ``traj.events.kind`` is an integer array (one entry
+    [`EventLog.kind`][jaxlag.EventLog]. ``traj.events.kind`` is an integer array (one entry
     per segment, batch axes first); compare it with these members by name, inside or outside
     ``jit``: ``traj.events.kind == jl.EventKind.CONTACT``. (An ``IntEnum``, not an
     ``eqx.Enumeration``, so that the comparison works on the integer arrays of the log.)
 
     - ``END`` (0): the end time was reached; ``NONE`` (−1): padding after the run ended.
     - ``RELEASE`` (1), ``CONTACT`` (2): a unilateral constraint was released / made contact.
-    - ``USER`` (3): a user :class:`~jaxlag.Event` fired.
-    - ``STICK`` (4), ``SLIP`` (5): a :class:`~jaxlag.Coulomb` contact started to stick / slip.
+    - ``USER`` (3): a user [`Event`][jaxlag.Event] fired.
+    - ``STICK`` (4), ``SLIP`` (5): a [`Coulomb`][jaxlag.Coulomb] contact started to stick / slip.
     - ``SILENT`` (−2): a crossing in the direction its condition ignores; it never reaches the
       log (it ends a segment, and the log drops it).
     """
@@ -78,7 +78,7 @@ class EventKind(enum.IntEnum):
 
     @property
     def label(self) -> str:
-        """The name :meth:`EventLog.kinds` gives the kind: ``"contact"``, ``"end"``, ..."""
+        """The name `EventLog.kinds` gives the kind: ``"contact"``, ``"end"``, ..."""
         return self.name.lower()
 
 
@@ -100,9 +100,9 @@ class Event(eqx.Module):
     - ``direction``: ``None`` (every crossing), ``True`` (upward only: ``c`` goes from
       negative to positive), ``False`` (downward only: positive to negative). Crossings in
       the other direction are not recorded (each still ends a segment, see
-      :class:`~jaxlag.Events`' ``max_segments``).
+      [`Events`][jaxlag.Events]' ``max_segments``).
     - ``terminal``: stop the simulation at the event (saved times after it hold ``inf``);
-      otherwise the event is only recorded in :class:`~jaxlag.EventLog` and the integration
+      otherwise the event is only recorded in [`EventLog`][jaxlag.EventLog] and the integration
       continues from the event state.
     - ``reset``: for a non-terminal event, the state map ``(q⁺, q̇⁺) = reset(q, qd, [t],
       [args])`` applied at each recorded crossing (switching systems: a thermostat, a velocity
@@ -113,13 +113,13 @@ class Event(eqx.Module):
       of the holonomic constraints acting after it and ``g = 0`` of the velocity constraints.
       An acting unilateral constraint whose gap the reset opens (``ḟ⁺ >`` the constraint
       tolerance) is released; an inactive one that it touches while approaching or violates
-      (``f < 0``) goes through an impact (:class:`~jaxlag.Unilateral`). After the reset the
+      (``f < 0``) goes through an impact ([`Unilateral`][jaxlag.Unilateral]). After the reset the
       condition continues from the side the motion takes it to (the sign of ``c`` if the reset
       moved it off zero, else of ``ċ``), so a reversal ``q̇⁺ = −e q̇`` at ``c = q[0] = 0`` fires
       again at the next downward crossing.
 
     The event time is a root of ``c`` on the solver's dense output, found by
-    :class:`~jaxlag.Events`' ``root_finder`` and differentiable (``jax.grad`` of an event time
+    [`Events`][jaxlag.Events]' ``root_finder`` and differentiable (``jax.grad`` of an event time
     or of the state there works).
     """
 
@@ -172,7 +172,7 @@ def _is_default(root_finder) -> bool:
 
 def root_finder_for(root_finder: optx.AbstractRootFinder, dtype) -> optx.AbstractRootFinder:
     """The root finder a run uses: the default's tolerances follow ``dtype``
-    (:func:`default_root_tolerance`); any other root finder is used as given."""
+    (`default_root_tolerance`); any other root finder is used as given."""
     if _is_default(root_finder):
         tol = default_root_tolerance(dtype)
         return optx.Newton(rtol=tol, atol=tol)
@@ -180,7 +180,7 @@ def root_finder_for(root_finder: optx.AbstractRootFinder, dtype) -> optx.Abstrac
 
 
 class Events(eqx.Module):
-    """The events of :func:`~jaxlag.simulate` (``events=jl.Events(...)``): user conditions and
+    """The events of [`simulate`][jaxlag.simulate] (``events=jl.Events(...)``): user conditions and
     how the segmented integration that handles them (and unilateral constraints) runs.
 
     Construct it with the conditions as positional arguments::
@@ -189,7 +189,7 @@ class Events(eqx.Module):
         jl.Events(*conditions)  # from a list
         jl.Events(max_segments=32)  # no user condition: a system with unilateral constraints
 
-    - ``conditions``: :class:`~jaxlag.Event` s (terminal or only recorded), stored as a tuple.
+    - ``conditions``: [`Event`][jaxlag.Event] s (terminal or only recorded), stored as a tuple.
     - ``max_segments``: the integration runs in at most this many segments (default 8). A
       segment ends at each release, contact or event (terminal or not), at each crossing in
       the direction a condition ignores (``direction=True``/``False``; not recorded) and at
@@ -197,7 +197,7 @@ class Events(eqx.Module):
       are a ``lax.scan`` of this static length: it is compiled in, the compile time does not
       grow with it, and segments left over after the end are empty solves that cost next to
       nothing at run time, so a generous value is cheap. Each friction switch
-      (:class:`~jaxlag.Coulomb`: ``"stick"``, ``"slip"``) ends a segment too. Needing more is a failure
+      ([`Coulomb`][jaxlag.Coulomb]: ``"stick"``, ``"slip"``) ends a segment too. Needing more is a failure
       (``SimulationError``), never a silent truncation; the message says how far the run got
       with the segments it had and the value to pass.
     - ``root_finder``: the ``optimistix`` root finder that locates each event on the solver's
@@ -206,7 +206,7 @@ class Events(eqx.Module):
       round-off there: the default, or a ``Newton`` equal to it, is adapted to the dtype).
       Any other root finder is used as given.
     - ``zeno_time``: an impact on a unilateral constraint with restitution (see
-      :class:`~jaxlag.Unilateral`) whose rebound would fly for less than ``zeno_time`` is taken
+      [`Unilateral`][jaxlag.Unilateral]) whose rebound would fly for less than ``zeno_time`` is taken
       as the end of an accumulation of impacts (a ball bouncing to rest, infinitely many
       impacts in finite time): it is plastic and the contact persists. The flight is predicted
       at the impact as ``τ = 2 e |ḟ⁻| / |f̈|`` (``ḟ⁻`` the approach rate, ``f̈ < 0`` the normal
@@ -219,7 +219,7 @@ class Events(eqx.Module):
 
     The segmented mode runs when the system has ``unilateral`` constraints or ``conditions`` is
     non-empty; it needs save times ``ts``. ``simulate(..., events=...)`` also takes a single
-    :class:`~jaxlag.Event` or a sequence of them, as ``Events(*conditions)``.
+    [`Event`][jaxlag.Event] or a sequence of them, as ``Events(*conditions)``.
     """
 
     conditions: tuple[Event, ...]
@@ -262,7 +262,7 @@ class Events(eqx.Module):
 
 
 def as_events(events) -> Events:
-    """``simulate``'s ``events=``: a :class:`Events`, or one :class:`Event` or a sequence of them
+    """``simulate``'s ``events=``: a `Events`, or one `Event` or a sequence of them
     (``Events(*events)``)."""
     if isinstance(events, Events):
         return events
@@ -292,12 +292,12 @@ class EventLog(eqx.Module):
     """What happened at the end of each segment: arrays of ``max_segments`` entries (with the
     batch axes first for a log from ``jax.vmap``), in the order the segments ran.
 
-    - ``kind[k]``: a :class:`~jaxlag.EventKind` value, compared by name
+    - ``kind[k]``: a [`EventKind`][jaxlag.EventKind] value, compared by name
       (``log.kind == jl.EventKind.CONTACT``): ``END`` (0) the end time was reached, ``RELEASE``
       (1) a unilateral constraint was released, ``CONTACT`` (2) one made contact, ``USER`` (3) a
       user event fired, ``STICK`` (4) a Coulomb contact started to stick, ``SLIP`` (5) one
       started to slip (from sticking, or reversing at ``v_t = 0``), ``NONE`` (−1) padding (the
-      run had already ended, at the end time, a terminal event or a failure). :meth:`kinds`
+      run had already ended, at the end time, a terminal event or a failure). `kinds`
       gives the names of the real entries.
     - ``index[k]``: which constraint (holonomic index), which user event (position in
       ``Events.conditions``) or which Coulomb contact (position in ``System.friction``); −1

@@ -1,4 +1,4 @@
-"""Time-table inputs (the implementation of :mod:`jaxlag.inputs`, which documents them)."""
+"""Time-table inputs (the implementation of `jaxlag.inputs`, which documents them)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,6 @@ from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from ._custom_types import RealScalarLike
 from ._misc import is_concrete
-
 
 _TS_MESSAGE = "A time table's `ts` must be finite and strictly increasing (t₀ < t₁ < … < t_{N−1})."
 _VALUES_MESSAGE = "A time table's `values` must be finite (no NaN or inf)."
@@ -121,7 +120,7 @@ class ZeroOrderHold(AbstractTimeTable):
 
     Right-continuous: at a sample time ``tᵢ`` the new value ``uᵢ`` holds. Before ``t₀`` the table
     gives ``u₀``, after ``t_{N−1}`` it holds ``u_{N−1}``. One sample is allowed (a constant).
-    ``u`` jumps at ``t₁, …, t_{N−1}``; :func:`~jaxlag.simulate` steps onto them as diffrax
+    ``u`` jumps at ``t₁, …, t_{N−1}``; [`simulate`][jaxlag.simulate] steps onto them as diffrax
     ``jump_ts``.
 
     **Arguments:** ``ts`` (N,), strictly increasing; ``values`` (N,) or (N, *shape).
@@ -143,7 +142,7 @@ class PiecewiseLinear(AbstractTimeTable):
     r"""Piecewise-linear interpolation,
     ``u(t) = uᵢ + (uᵢ₊₁ − uᵢ)(t − tᵢ)/(tᵢ₊₁ − tᵢ)`` on ``[tᵢ, tᵢ₊₁]``.
 
-    Continuous, with kinks at the samples (which :func:`~jaxlag.simulate` steps onto as diffrax
+    Continuous, with kinks at the samples (which [`simulate`][jaxlag.simulate] steps onto as diffrax
     ``step_ts``). Holds the end values outside ``[t₀, t_{N−1}]``. Evaluated by
     ``diffrax.LinearInterpolation``.
 
@@ -167,7 +166,7 @@ class CubicSpline(AbstractTimeTable):
     with the natural end conditions ``m₀ = m_{N−1} = 0``.
 
     ``u`` is twice continuously differentiable on ``[t₀, t_{N−1}]`` and interpolates every
-    sample; ``u‴`` jumps at the samples (:func:`~jaxlag.simulate` steps onto them as diffrax
+    sample; ``u‴`` jumps at the samples ([`simulate`][jaxlag.simulate] steps onto them as diffrax
     ``step_ts``). Outside the table the end values hold (``u`` stays continuous there, ``u′``
     jumps to zero). Two samples give the straight line. The spline is global: each value moves
     the whole curve a little (it is not causal). The system is solved on every call (``O(N)``,
@@ -218,10 +217,10 @@ def with_breakpoints(
     """``controller`` told to step onto the breakpoints of ``tables``.
 
     Returns a ``diffrax.ClipStepSizeController`` around ``controller`` whose ``jump_ts`` are
-    the sample times of every :class:`ZeroOrderHold` and whose ``step_ts`` are those of the other
+    the sample times of every `ZeroOrderHold` and whose ``step_ts`` are those of the other
     tables. A ``ClipStepSizeController`` given as ``controller`` keeps its own ``step_ts`` and
     ``jump_ts`` (the times are merged). ``tables`` may be tables or pytrees holding tables (an
-    ``args`` dict). :func:`~jaxlag.simulate` already does this for the tables in its ``args``::
+    ``args`` dict). [`simulate`][jaxlag.simulate] already does this for the tables in its ``args``::
 
         controller = inputs.with_breakpoints(diffrax.PIDController(rtol=1e-8, atol=1e-8), u)
     """
@@ -272,7 +271,7 @@ def _clip(controller, tables, dtype):
 def controller_for_args(controller, args, dtype):
     """``simulate``'s controller, told the breakpoints of the time tables in ``args`` (an
     adaptive controller only; a fixed step is returned as it is). The times of a
-    ``ClipStepSizeController`` (one from :func:`with_breakpoints`, say) take the time's ``dtype``:
+    ``ClipStepSizeController`` (one from `with_breakpoints`, say) take the time's ``dtype``:
     a float64 table may drive a float32 simulation."""
     if not isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
         return controller

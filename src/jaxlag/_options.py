@@ -1,8 +1,8 @@
-"""``SimulateOptions``: the keyword options of :func:`~jaxlag.simulate`, written once.
+"""``SimulateOptions``: the keyword options of [`simulate`][jaxlag.simulate], written once.
 
-:func:`~jaxlag.simulate` spells them out as keywords with their defaults (its signature is where
+[`simulate`][jaxlag.simulate] spells them out as keywords with their defaults (its signature is where
 the defaults live, as ``diffrax.diffeqsolve``'s is); every entry point that runs ``simulate`` for
-its user (:func:`~jaxlag.simulate_batch`, the batch methods) takes them as
+its user ([`simulate_batch`][jaxlag.simulate_batch], the batch methods) takes them as
 ``**options: Unpack[SimulateOptions]`` and forwards them untouched, so a new option of
 ``simulate`` is added in two places: its signature and this ``TypedDict``.
 """
@@ -26,9 +26,9 @@ __all__ = ["SimulateOptions", "default_option", "check_option_names"]
 
 
 class SimulateOptions(TypedDict, total=False):
-    """The options of :func:`~jaxlag.simulate` other than the problem ``(system, q0, qd0, ts,
+    """The options of [`simulate`][jaxlag.simulate] other than the problem ``(system, q0, qd0, ts,
     args)``; each is optional, and one left out means ``simulate``'s default. See
-    :func:`~jaxlag.simulate` for their meaning."""
+    [`simulate`][jaxlag.simulate] for their meaning."""
 
     t0: RealScalarLike | None
     t1: RealScalarLike | None
@@ -54,13 +54,13 @@ _DEFAULTS = MappingProxyType(
 
 
 def default_option(options: Mapping[str, object], name: str) -> Any:
-    """``options[name]``, or :func:`~jaxlag.simulate`'s default when it was not given."""
+    """``options[name]``, or [`simulate`][jaxlag.simulate]'s default when it was not given."""
     return options.get(name, _DEFAULTS[name])
 
 
 def check_option_names(options: Mapping[str, object], caller: str) -> None:
     """A ``TypeError`` (as Python raises for a keyword) for a name that is not an option of
-    :func:`~jaxlag.simulate`."""
+    [`simulate`][jaxlag.simulate]."""
     for name in options:
         if name not in _DEFAULTS:
             raise TypeError(f"{caller}() got an unexpected keyword argument {name!r}.")

@@ -1,8 +1,8 @@
-r"""The conditions that end a segment of the segment loop (:mod:`jaxlag._segment_loop`).
+r"""The conditions that end a segment of the segment loop (`jaxlag._segment_loop`).
 
 ``SegmentConditions.switches`` lists the quantities whose zero from above ends a segment, in
 this order: ``min λ`` over the acting unilateral rows (a release), ``min f`` over the inactive
-ones (a contact), the friction switch (:mod:`jaxlag._mechanics.friction_modes`), then ``σ_k c_k``
+ones (a contact), the friction switch (`jaxlag._mechanics.friction_modes`), then ``σ_k c_k``
 of each user condition (``σ_k = ±1`` the side ``c_k`` starts the segment on). diffrax locates
 their minimum as one condition (releases and contacts alone: two).
 """
@@ -67,13 +67,13 @@ class SegmentConditions(eqx.Module):
         return value.astype(condition_dtype())
 
     def contact(self, t, y, args, **kwargs):
-        """:meth:`contact_raw`, 1 where it is ``inf`` (a diffrax condition of its own)."""
+        """`contact_raw`, 1 where it is ``inf`` (a diffrax condition of its own)."""
         value = self.contact_raw(t, y, args)
         return jnp.where(jnp.isfinite(value), value, 1.0).astype(condition_dtype())
 
     def contact_raw(self, t, y, args):
         """``min_i f_i`` over the inactive unilateral rows (``inf`` at ``t_start`` and where
-        there is none), ``f_i / (t − t_start)`` for the :attr:`departing` ones.
+        there is none), ``f_i / (t − t_start)`` for the `departing` ones.
 
         The division keeps the roots of ``f_i`` after ``t_start`` but not the one at ``t_start``
         of a body that has just rebounded from ``f_i = 0``: there ``f_i ≈ ḟ⁺ δ − ½|f̈| δ²``
@@ -126,7 +126,7 @@ class SegmentConditions(eqx.Module):
         return jnp.concatenate(values) if values else jnp.zeros((0,), condition_dtype())
 
     def crossing(self, t, y, args, **kwargs):
-        """The one diffrax condition of the segment, ``φ = min`` of :meth:`switches`: ``φ > 0``
+        """The one diffrax condition of the segment, ``φ = min`` of `switches`: ``φ > 0``
         until the first switch and 0 there. At ``t_start`` each term is put above 0 (its
         quantity may be ~0 after an event, with a residual of either sign, and diffrax counts a
         change of sign to 0 as a crossing)."""

@@ -1,12 +1,12 @@
 r"""The segment loop: integrate across releases, contacts, friction switches and user events.
 
-A run with unilateral constraints, Coulomb contacts or user conditions (:mod:`jaxlag._events`)
+A run with unilateral constraints, Coulomb contacts or user conditions (`jaxlag._events`)
 is integrated in segments; each segment is one ``diffrax.diffeqsolve`` with a fixed set of
 acting constraints and friction modes, ended by the first of
 
 * release: ``min_i λ_i`` over the acting unilateral constraints reaching zero from above;
 * contact: ``min_i f_i`` over the inactive ones reaching zero from above;
-* a friction switch (:mod:`jaxlag._mechanics.friction_modes`);
+* a friction switch (`jaxlag._mechanics.friction_modes`);
 * a crossing of a user condition ``c_k``: ``σ_k c_k`` reaching zero from above, where
   ``σ_k = ±1`` is the side ``c_k`` starts the segment on.
 
@@ -40,15 +40,15 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from . import _compile as compilation
-from ._errors import Failure, FailureCode, first_failure, from_solution
 from ._checks import initial_activity, validate_initial_state
+from ._errors import Failure, FailureCode, first_failure, from_solution
 from ._events import Event, EventKind, EventLog, Events, root_finder_for
-from ._segment_conditions import SegmentConditions, condition_dtype, condition_values, sides_from
 from ._mechanics.constant_mass import with_constant_mass
 from ._mechanics.constraints import holonomic_residual
 from ._mechanics.friction_modes import AbstractFrictionModes, friction_modes_for
 from ._mechanics.jumps import AbstractJumpLaw, Jump, SegmentEnd, jump_law_for
 from ._mechanics.resets import AbstractResets, resets_for
+from ._segment_conditions import SegmentConditions, condition_dtype, condition_values, sides_from
 from ._simulation_inputs import SimulationInputs
 from ._solver.guard import guard
 from ._solver.step_once import StepOnce
@@ -120,7 +120,7 @@ class _SegmentCarry(eqx.Module):
 
 
 class _SegmentRecord(eqx.Module):
-    """What one segment leaves in the :class:`~jaxlag.EventLog` (one row of the scan output)."""
+    """What one segment leaves in the [`EventLog`][jaxlag.EventLog] (one row of the scan output)."""
 
     time: Float[Array, ""]
     kind: Int[Array, ""]
@@ -233,7 +233,7 @@ def _fill_saves(loop: _Loop, carry: _SegmentCarry, solved: _SolvedSegment) -> _S
 
 def _which_switch(loop: _Loop, segment: SegmentConditions, carry: _SegmentCarry, solved: _SolvedSegment):
     """``(index, values)``: the switch at zero (the smallest) at the event among those
-    decreasing there, in :meth:`SegmentConditions.switches` order. Near an event more than one can be
+    decreasing there, in `SegmentConditions.switches` order. Near an event more than one can be
     ~0 within the root finder's tolerance (two conditions crossing at the same instant; the gap
     of a constraint just released, which grows from 0 quadratically, and a user condition
     crossing just after). The release and friction switches are taken as decreasing: their
@@ -639,7 +639,7 @@ def _solve_segments(
 
 def solve_segments(*, inputs: SimulationInputs, events: Events, run: _RunOptions, adjoint) -> Trajectory:
     """Integrate across releases, contacts, friction switches and user events (see the module
-    docstring); the trajectory has ``events`` (an :class:`~jaxlag.EventLog`), ``active``,
+    docstring); the trajectory has ``events`` (an [`EventLog`][jaxlag.EventLog]), ``active``,
     ``failure`` and ``stats`` (summed over the segments) set."""
     solution = _solve_segments(inputs, events, run, adjoint)
     return Trajectory.from_states(

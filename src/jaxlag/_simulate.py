@@ -1,4 +1,4 @@
-"""``simulate``: integrate a :class:`~jaxlag.System` with ``diffrax.diffeqsolve``."""
+"""``simulate``: integrate a [`System`][jaxlag.System] with ``diffrax.diffeqsolve``."""
 
 from __future__ import annotations
 
@@ -16,19 +16,6 @@ import numpy as np
 from . import _compile as compilation
 from . import _diagnosis
 from . import _errors as failures
-from ._solver.guard import guard, saving_guard_state
-from ._solver import tangent_solve
-from ._misc import is_concrete
-from ._checks import Checks, validate_initial_state
-from ._tolerances import default_solver_tolerance
-from ._conventions import as_array_leaves
-from ._mechanics.constant_mass import with_constant_mass
-from ._conventions import as_float_state, as_jax_array
-from ._custom_types import Args, Coordinates, RealScalarLike, SaveTimes, Velocities
-from ._events import Event, Events, as_events
-from ._segment_loop import solve_segments
-from ._simulation_inputs import SimulationInputs
-from ._vector_field import EquationsOfMotion
 from ._adjoint import (
     AbstractPushingRun,
     ForwardSensitivities,
@@ -36,6 +23,19 @@ from ._adjoint import (
     captures_traced_values,
     trace_outputs,
 )
+from ._checks import Checks, validate_initial_state
+from ._conventions import as_array_leaves, as_float_state, as_jax_array
+from ._custom_types import Args, Coordinates, RealScalarLike, SaveTimes, Velocities
+from ._events import Event, Events, as_events
+from ._inputs import controller_for_args
+from ._mechanics.constant_mass import with_constant_mass
+from ._misc import is_concrete
+from ._segment_loop import solve_segments
+from ._simulation_inputs import SimulationInputs
+from ._solver import tangent_solve
+from ._solver.guard import guard, saving_guard_state
+from ._solver.step_once import StepOnce
+from ._solver.validation import check_solver_controller
 from ._stabilization import (
     Baumgarte,
     Projection,
@@ -43,11 +43,10 @@ from ._stabilization import (
     stages_for_forward_mode,
     wrap_for_projection,
 )
-from ._solver.step_once import StepOnce
-from ._solver.validation import check_solver_controller
-from ._inputs import controller_for_args
 from ._system import System
+from ._tolerances import default_solver_tolerance
 from ._trajectory import Trajectory
+from ._vector_field import EquationsOfMotion
 
 
 def save_times_message(ts) -> str | None:
@@ -82,7 +81,7 @@ def _as_time(t, dtype):
 
 def _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection, adjoint):
     """What the solver loop integrates: ``(system, solver, term)`` with a state-independent
-    ``M`` found and inverted once (:mod:`jaxlag._mechanics.constant_mass`) and the solver wrapped for the
+    ``M`` found and inverted once (`jaxlag._mechanics.constant_mass`) and the solver wrapped for the
     projection."""
     # A state-independent M (Cartesian particles) is inverted once here, not at every step.
     fast = with_constant_mass(system, q0, qd0, t0, args)
@@ -107,8 +106,8 @@ def _integrate(
     progress_meter,
     with_tangents=False,
 ):
-    """``diffrax.diffeqsolve`` without diffrax's exceptions: failures are recorded (:mod:`jaxlag._errors`).
-    ``with_tangents``: ``solver`` is a :class:`~jaxlag._solver.tangent_solve.TangentSolver` and ``y0``
+    """``diffrax.diffeqsolve`` without diffrax's exceptions: failures are recorded (`jaxlag._errors`).
+    ``with_tangents``: ``solver`` is a `TangentSolver` and ``y0``
     carries tangents, which the (guarded) ``controller`` is kept from seeing."""
     if with_tangents:
         controller = tangent_solve.primal_step_sizes(controller)
@@ -131,7 +130,7 @@ def _integrate(
 
 
 def _finish(system, fast, projection, solution, ys, t0, t1, q0, qd0, args, max_steps):
-    """The :class:`Trajectory` of a solve whose saved states are ``ys``."""
+    """The `Trajectory` of a solve whose saved states are ``ys``."""
     q, qd = ys
     if projection is not None:
         # Saved values between steps come from the solver's interpolant: project them too.
@@ -206,7 +205,7 @@ _STEPPED = frozenset({"system", "q0", "qd0", "args", "baumgarte", "projection"})
 
 def _user_functions(inputs: SimulationInputs):
     """Every function of the system (Lagrangian, constraints, dissipation, forces) evaluated
-    once at the initial state, for :func:`captures_traced_values`: the solver loop calls
+    once at the initial state, for `captures_traced_values`: the solver loop calls
     nothing else that a user wrote (the solver, controller and projection are diffrax's and
     jaxlag's modules, whose arrays are inputs, not captured values)."""
     system, q0, qd0, t0, args = inputs.system, inputs.q0, inputs.qd0, inputs.t0, inputs.args
@@ -230,15 +229,15 @@ def _user_functions(inputs: SimulationInputs):
 
 @compilation.filter_jit
 def _solve_with_tangents(run, static, primals, tangents, axes, structure):
-    """The solve of :func:`_solve` (``run``'s, not segmented) and its derivatives along k
-    directions in one solver loop (:mod:`jaxlag._solver.tangent_solve`): ``(outputs, tangents,
-    rest)`` as ``jax.vmap(jax.jvp(...))`` of ``run`` gives them (:mod:`jaxlag._adjoint`),
+    """The solve of `_solve` (``run``'s, not segmented) and its derivatives along k
+    directions in one solver loop (`jaxlag._solver.tangent_solve`): ``(outputs, tangents,
+    rest)`` as ``jax.vmap(jax.jvp(...))`` of ``run`` gives them (`jaxlag._adjoint`),
     the outputs' inexact leaves, their k tangents (leading axis) and the other leaves.
 
     ``primals``: the inexact leaves of the inputs (structure ``structure``, the rest in
     ``static``); ``tangents``: one per leaf, k leading where ``axes`` says 0, else not batched.
     Only the inputs that the solver steps see may be perturbed (not times, not the controller):
-    :meth:`_Run.solves_with_tangents` decides."""
+    `_Run.solves_with_tangents` decides."""
     leaves = jax.tree.leaves(primals)
     axes = list(axes)
 
@@ -316,12 +315,12 @@ class _Run(AbstractPushingRun):
     tolerance: Any
 
     def may_solve_with_tangents(self, inputs: SimulationInputs) -> bool:
-        """Whether :meth:`solves_with_tangents` holds for some perturbed inputs (those of the
+        """Whether `solves_with_tangents` holds for some perturbed inputs (those of the
         steps): the run's options allow the tangent solve."""
         return self.solves_with_tangents(inputs, None)
 
     def solves_with_tangents(self, inputs: SimulationInputs, perturbed) -> bool:
-        """Whether :func:`_solve_with_tangents` gives this run's forward sensitivities when the
+        """Whether `_solve_with_tangents` gives this run's forward sensitivities when the
         inexact input leaves flagged in ``perturbed`` (a list in leaf order) are differentiated:
         a plain solve (no events), an explicit Runge–Kutta solver, a guarded controller, states
         saved as they are, and no perturbed time, save time, solver, controller or progress
@@ -354,7 +353,7 @@ class _Run(AbstractPushingRun):
         )
 
     def push_along(self, primals, static, tangents, axes, structure):
-        """``(outputs, tangents, rest)`` along k directions: :func:`_solve_with_tangents`."""
+        """``(outputs, tangents, rest)`` along k directions: `_solve_with_tangents`."""
         return _solve_with_tangents(self, static, primals, tangents, axes, structure)
 
     def __call__(self, inputs: SimulationInputs, adjoint):
@@ -410,18 +409,19 @@ def simulate(
 
     **Arguments:**
 
-    - ``system``: a :class:`~jaxlag.System`.
+    - ``system``: a [`System`][jaxlag.System].
     - ``q0``, ``qd0``: initial coordinates and velocities, 1-D arrays of the same length n.
     - ``ts``: increasing save times; the integration runs from ``ts[0]`` to ``ts[-1]``.
       Alternatively give ``t0``, ``t1`` and a ``diffrax.SaveAt``.
     - ``args``: parameters (any pytree) passed to every user function that declares ``args``.
       An adaptive step-size controller steps onto the breakpoints of the time tables of
-      :mod:`jaxlag.inputs` in ``args`` (see :func:`jaxlag.inputs.with_breakpoints`).
-    - ``checks``: a :class:`~jaxlag.Checks` of the input checks (default ``jl.Checks()``: all
+      `jaxlag.inputs` in ``args`` (see [`jaxlag.inputs.with_breakpoints`][jaxlag.inputs.with_breakpoints]).
+    - ``checks``: a [`Checks`][jaxlag.Checks] of the input checks (default ``jl.Checks()``: all
       on). ``initial_state``: raise if ``(q0, qd0)`` is non-finite, has a singular mass matrix,
       redundant constraints, or is off the constraint manifold by more than
       ``constraint_tolerance`` (default 1e-8 in float64, ``√ε`` = 3.5e-4 in float32; see
-      :func:`~jaxlag.consistent_initial_state`); non-finite parameters in ``args`` are an error.
+      [`consistent_initial_state`][jaxlag.consistent_initial_state]); non-finite parameters in ``args`` are
+      an error.
       ``times``: traced ``ts`` (inside ``jit``/``vmap``) are checked to increase inside the
       compiled program (and diffrax checks its save times there too); pass
       ``jl.Checks(times=False)`` when you have checked them yourself, as ``jl.fit`` does once
@@ -435,24 +435,25 @@ def simulate(
     or ``diffrax.Euler()``, needs one: with an adaptive controller it is a ``ValueError``),
     ``dt0`` (default: chosen by the controller), ``saveat``,
     ``max_steps``, ``adjoint``, ``event``, ``throw`` and ``progress_meter``. The default adjoint,
-    :class:`~jaxlag.ForwardSensitivities`, gives ``jax.grad`` by forward sensitivities when at most
+    [`ForwardSensitivities`][jaxlag.ForwardSensitivities], gives ``jax.grad`` by forward sensitivities when
+    at most
     10 scalars are differentiated and by diffrax's ``RecursiveCheckpointAdjoint`` otherwise
-    (:mod:`jaxlag._adjoint`); for ``jax.jacfwd`` pass ``diffrax.ForwardMode()``.
+    (`jaxlag._adjoint`); for ``jax.jacfwd`` pass ``diffrax.ForwardMode()``.
 
     Constrained systems:
 
-    - ``projection``: the :class:`~jaxlag.Projection` applied after every accepted step and at
+    - ``projection``: the [`Projection`][jaxlag.Projection] applied after every accepted step and at
       the saved times (default ``jl.Projection()``), or ``None`` for none. Ignored for a system
       without constraints.
-    - ``baumgarte``: optional :class:`~jaxlag.Baumgarte` feedback in the acceleration constraint.
+    - ``baumgarte``: optional [`Baumgarte`][jaxlag.Baumgarte] feedback in the acceleration constraint.
     - ``throw``: on a run-time failure (non-finite equations of motion, a collapsing step size,
-      ``max_steps``, ``max_segments``) raise :class:`~jaxlag.SimulationError` with the numbers
-      and a diagnosis (:mod:`jaxlag._errors`); with ``False`` return the trajectory, whose
+      ``max_steps``, ``max_segments``) raise [`SimulationError`][jaxlag.SimulationError] with the numbers
+      and a diagnosis (`jaxlag._errors`); with ``False`` return the trajectory, whose
       ``failure`` record says what happened (``traj.raise_if_failed()`` raises later).
 
-    Events and unilateral constraints (see :mod:`jaxlag._events`):
+    Events and unilateral constraints (see `jaxlag._events`):
 
-    - ``events``: a :class:`~jaxlag.Events` of :class:`~jaxlag.Event` conditions (terminal or
+    - ``events``: a [`Events`][jaxlag.Events] of [`Event`][jaxlag.Event] conditions (terminal or
       recorded) and the options of the segmented integration, e.g.
       ``jl.Events(jl.Event(f), max_segments=16)``; a single ``jl.Event`` or a sequence of them
       is taken as ``jl.Events(*events)``.
@@ -461,11 +462,11 @@ def simulate(
       too few is a ``SimulationError`` that says how many are needed), each event located by
       ``events.root_finder`` (default ``optimistix.Newton(rtol=1e-13, atol=1e-13)``, ``√ε``
       in lower precision); the returned trajectory has ``events`` (an
-      :class:`~jaxlag.EventLog`), ``active`` and ``stats`` (summed over the segments) set.
-      A crossing is a sign change after ``t0`` (see :class:`~jaxlag.Event`). This mode needs
+      [`EventLog`][jaxlag.EventLog]), ``active`` and ``stats`` (summed over the segments) set.
+      A crossing is a sign change after ``t0`` (see [`Event`][jaxlag.Event]). This mode needs
       ``ts``.
 
-    Returns a :class:`~jaxlag.Trajectory`.
+    Returns a [`Trajectory`][jaxlag.Trajectory].
     """
     if not isinstance(checks, Checks):
         raise TypeError(f"checks must be a jl.Checks; got {type(checks).__name__}.")
@@ -593,7 +594,7 @@ def as_projection(projection, system: System) -> Projection | None:
 
 
 def _checked_initial_state(inputs: SimulationInputs, tolerance) -> SimulationInputs:
-    """``inputs`` with ``(q0, qd0)`` checked (:func:`~jaxlag._checks.validate_initial_state`:
+    """``inputs`` with ``(q0, qd0)`` checked (`validate_initial_state`:
     raises here for concrete values, compiles the check in otherwise)."""
     q0, qd0 = validate_initial_state(inputs.system, inputs.q0, inputs.qd0, inputs.t0, inputs.args, tolerance)
     return dataclasses.replace(inputs, q0=q0, qd0=qd0)

@@ -11,8 +11,8 @@ from ._system import System
 
 
 class SimulationInputs(eqx.Module):
-    """The inputs of one simulation, as :class:`_Run` receives them: a pytree whose inexact array
-    leaves are what ``jax.grad`` may differentiate (:mod:`jaxlag._adjoint`; the other leaves
+    """The inputs of one simulation, as `_Run` receives them: a pytree whose inexact array
+    leaves are what ``jax.grad`` may differentiate (`jaxlag._adjoint`; the other leaves
     are static). ``events``: the user conditions and the segmented integration's options (only
     read when the run is segmented); ``event``: a diffrax event (plain solves only)."""
 

@@ -3,18 +3,18 @@ r"""Drift control for the index-1 (acceleration-level) formulation.
 Integrating ``G q̈ = c`` keeps ``f̈ = 0`` but lets ``f`` and ``ḟ`` drift with the truncation
 error. Two remedies, usable together:
 
-* :class:`Baumgarte` adds feedback to the acceleration constraint,
+* `Baumgarte` adds feedback to the acceleration constraint,
   ``f̈ + 2α ḟ + β² f = 0`` (holonomic) and ``ġ + 2α g = 0`` (velocity constraints). ``α = β``
   gives critical damping of the drift; rates of order the inverse time step the solver takes
   (or of the fastest physical frequency) work well. Too large makes the system stiff.
-* :class:`Projection` moves each accepted step back onto the constraint manifold:
+* `Projection` moves each accepted step back onto the constraint manifold:
   positions by Newton iterations of the mass-weighted minimal correction
 
       q ← q − M⁻¹Jᵀ (J M⁻¹ Jᵀ)⁻¹ f(q, t),
 
   then velocities onto ``J q̇ + ∂f/∂t = 0`` and ``A q̇ + b = 0`` by the exact linear projection
   ``q̇ ← q̇ − M⁻¹Gᵀ (G M⁻¹ Gᵀ)⁻¹ r`` with ``r = [ḟ; g]``. It wraps the diffrax solver
-  (:class:`ProjectedSolver`), so error control sees the unprojected step and the projection
+  (`ProjectedSolver`), so error control sees the unprojected step and the projection
   is applied before the next step starts.
 """
 
@@ -31,14 +31,14 @@ import numpy as np
 from jaxtyping import Array, Bool
 
 from . import _compile as compilation
+from ._conventions import as_array_leaves, as_jax_array
 from ._custom_types import Args, Coordinates, RealScalarLike, Vector, Velocities
 from ._mechanics import constraints as _constraints
-from ._conventions import as_array_leaves, as_jax_array
 from ._mechanics.kkt import deactivate
-from ._mechanics.linalg import solve_psd_least_squares, solve_spd, spd_solver
 from ._mechanics.lagrangian import as_time, mass_matrix, mass_solver
-from ._solver.forwarding import ForwardingSolver
+from ._mechanics.linalg import solve_psd_least_squares, solve_spd, spd_solver
 from ._misc import is_concrete
+from ._solver.forwarding import ForwardingSolver
 from ._system import System
 from ._tolerances import CONSTRAINT_RCOND, rcond
 
@@ -58,7 +58,7 @@ def _schur_correction(system, solve_mass, rows, residual, active=None):
     """``M⁻¹Gᵀ (G M⁻¹ Gᵀ)⁻¹ r``: the M-weighted minimal change that removes the linear residual.
 
     ``solve_mass`` applies ``M⁻¹`` (factored once per projection). Rows whose ``active`` entry
-    is zero are left out (see :func:`jaxlag._mechanics.kkt.deactivate`).
+    is zero are left out (see `jaxlag._mechanics.kkt.deactivate`).
     """
     rows, residual, pad = deactivate(rows, residual, active)
     minv_gt = solve_mass(rows.T)
@@ -170,7 +170,7 @@ class ProjectedSolver(ForwardingSolver, diffrax.AbstractWrappedSolver):
     which differs from the projected state by the drift of a single step (at the level of the
     local error) and so does not change the order of the method. diffrax's ForwardMode reads
     ``scan_kind`` on Runge–Kutta solvers (``isinstance`` is forwarded to the inner solver): the
-    forwarded field, see :func:`wrap_for_projection`.
+    forwarded field, see `wrap_for_projection`.
     """
 
     solver: diffrax.AbstractSolver  # pyright: ignore[reportIncompatibleVariableOverride]
@@ -263,7 +263,7 @@ _POSITION_MESSAGE = (
 
 def projection_with_residuals(system, q0, qd0, t0, args, newton_steps=20, free_q=None, free_qd=None):
     """``(q, qd, position_residual, velocity_residual)``: the projection of
-    :func:`consistent_initial_state` without its checks, and what they test: ``max |f(q)|`` and
+    `consistent_initial_state` without its checks, and what they test: ``max |f(q)|`` and
     (with ``free_qd``) ``max |(ḟ, g)|`` (zeros where there is nothing to test). For callers that
     check on the host after their program has run (``jl.fit``): no host callback is compiled."""
     q, qd = project_state(
@@ -282,14 +282,14 @@ def projection_with_residuals(system, q0, qd0, t0, args, newton_steps=20, free_q
 
 
 def default_projection_tolerance(dtype) -> float:
-    """The default ``tolerance`` of :func:`consistent_initial_state`: 1e-10 in float64, ``√ε``
+    """The default ``tolerance`` of `consistent_initial_state`: 1e-10 in float64, ``√ε``
     of lower precisions (3.5e-4 in float32)."""
     eps = float(jnp.finfo(dtype).eps)
     return 1e-10 if eps <= float(jnp.finfo(jnp.float64).eps) else eps**0.5
 
 
 def position_failure_message(tolerance, dtype) -> str:
-    """The error of :func:`consistent_initial_state` when the positions stay off the manifold."""
+    """The error of `consistent_initial_state` when the positions stay off the manifold."""
     return _POSITION_MESSAGE.format(tolerance=tolerance, dtype=np.dtype(dtype))
 
 
@@ -311,7 +311,7 @@ def _projection_and_rows(system, q0, qd0, t0, args, newton_steps, free_q, free_q
 
 
 def _finite_rows(system, q, qd, q0, qd0, t0, args):
-    """The rows of :func:`_rows_at` at the projected state, or at the given one where the
+    """The rows of `_rows_at` at the projected state, or at the given one where the
     projection went non-finite (a singular correction when nothing can move)."""
     final = _rows_at(system, q, qd, t0, args)
     start = _rows_at(system, q0, qd0, t0, args)
@@ -433,7 +433,7 @@ def _rows_without_free(rows, free, m_h, level: str, fixed, fixed_name: str) -> s
 
 
 def _projection_message(system, q, position, velocity, rows, tolerance, fixed_q, fixed_qd, free_q, free_qd):
-    """The error of an eager :func:`consistent_initial_state`, or ``None`` if it succeeded."""
+    """The error of an eager `consistent_initial_state`, or ``None`` if it succeeded."""
     jac, all_rows = (np.asarray(x) for x in rows)
     m_h = jac.shape[0]
     fixed_q = (fixed_q,) if isinstance(fixed_q, int) else tuple(fixed_q)
@@ -489,7 +489,7 @@ def stages_for_adjoint(solver, adjoint):
     (``"lax"`` for ``ForwardMode``, ``"bounded"`` for ``DirectAdjoint``; the others leave it),
     set here on ``solver`` itself: diffrax finds the solver by an ``isinstance`` check that sees
     through one wrapper, and jaxlag wraps user solvers twice (projection,
-    :mod:`jaxlag._solver.step_once`)."""
+    `jaxlag._solver.step_once`)."""
     if isinstance(adjoint, diffrax.ForwardMode):
         return stages_for_forward_mode(solver)
     if isinstance(adjoint, diffrax.DirectAdjoint):

@@ -11,14 +11,6 @@ from jaxtyping import Array, Float
 
 from . import _compile as compilation
 from ._checks import check_state_result
-from ._custom_types import Args, Coordinates, Matrix, RealScalarLike, Scalar, Vector, Velocities
-from ._mechanics.constant_mass import ConstantMass
-from ._mechanics.mass_solve import AbstractMassSolve, CheckedCholesky
-from ._mechanics.impacts import Unilateral, as_unilateral
-from ._mechanics.friction import Coulomb, as_friction
-from ._mechanics import constraints as _constraints
-from ._mechanics import kkt as _kkt
-from ._mechanics import lagrangian as _mechanics
 from ._conventions import (
     UserFunction,
     as_array_leaves,
@@ -26,12 +18,20 @@ from ._conventions import (
     wrap_state_function,
 )
 from ._conventions import _wrap as _wrap_function
+from ._custom_types import Args, Coordinates, Matrix, RealScalarLike, Scalar, Vector, Velocities
+from ._mechanics import constraints as _constraints
+from ._mechanics import kkt as _kkt
+from ._mechanics import lagrangian as _mechanics
+from ._mechanics.constant_mass import ConstantMass
+from ._mechanics.friction import Coulomb, as_friction
+from ._mechanics.impacts import Unilateral, as_unilateral
+from ._mechanics.mass_solve import AbstractMassSolve, CheckedCholesky
 
 
 class System(eqx.Module):
     r"""A mechanical system: ``L(q, q̇, t)`` plus constraints and non-conservative forces.
 
-    Every function follows one convention (see :mod:`jaxlag._conventions`): state positionally,
+    Every function follows one convention (see `jaxlag._conventions`): state positionally,
     ``t`` and ``args`` by keyword if declared.
 
     **Arguments:**
@@ -45,32 +45,33 @@ class System(eqx.Module):
     - ``actuation``: the generalized forces of a control input ``u``,
       ``Q_u(q, qd, u, [t], [args]) -> (n,)``, e.g. a horizontal force on a cart
       ``lambda q, qd, u: jnp.stack([u, 0.0])``. ``u`` enters as a generalized force:
-      ``M q̈ = F + Q_u(q, q̇, u, t) + Jᵀλ + Aᵀμ``. :func:`jaxlag.analysis.linearize` turns it into
+      ``M q̈ = F + Q_u(q, q̇, u, t) + Jᵀλ + Aᵀμ``. [`jaxlag.analysis.linearize`][jaxlag.analysis.linearize]
+      turns it into
       the input matrix ``B = ∂(q̇, q̈)/∂u``.
     - ``control``: the law giving the input, ``u = control(q, qd, [t], [args])``, a scalar or a
       1-D array (k,): a feedback law, a time table (``lambda q, qd, t, args: args["u"](t)``
-      with a :mod:`jaxlag.inputs` table in ``args``), or both. Gains and tables in ``args`` make
-      one ``System`` serve open loop, linearization and closed loop; :meth:`with_control`
+      with a `jaxlag.inputs` table in ``args``), or both. Gains and tables in ``args`` make
+      one ``System`` serve open loop, linearization and closed loop; `with_control`
       returns a copy with another law. A system with ``actuation`` needs a control law to be
       simulated (there is no implied ``u = 0``: the size of ``u`` is the law's), and
-      :func:`~jaxlag.analysis.linearize` accepts ``u=`` instead.
+      [`linearize`][jaxlag.analysis.linearize] accepts ``u=`` instead.
     - ``least_squares``: accept redundant constraints (singular ``J M⁻¹ Jᵀ``) and report the
       minimum-norm multipliers instead of raising.
     - ``diagonal_mass``: declare ``M`` diagonal (Cartesian particles): ``M⁻¹`` is then a division,
       not a Cholesky factorization. Checked at the initial state.
     - ``mass_solve``: how ``M q̈ = F + Jᵀλ + Aᵀμ`` is solved, a
-      :class:`~jaxlag.AbstractMassSolve`. ``jl.CheckedCholesky()`` (default): a state whose
+      [`AbstractMassSolve`][jaxlag.AbstractMassSolve]. ``jl.CheckedCholesky()`` (default): a state whose
       ``M`` is not positive definite is an error (raised with the numbers). ``jl.RobustSolve()``,
       for learned Lagrangians: such a state gives NaN accelerations and multipliers for that
       state alone (under ``vmap``, one member), never an error, with a zero gradient; count them
       with ``jnp.isnan(qdd).any(-1).sum()``.
     - ``unilateral``: indices of holonomic constraints that are one-sided, ``f_i(q, t) ≥ 0``
       with ``λ_i ≥ 0`` while in contact (a particle on the outside of a sphere ``r − R ≥ 0``,
-      a string ``l − r ≥ 0``). :func:`~jaxlag.simulate` releases such a constraint when its
+      a string ``l − r ≥ 0``). [`simulate`][jaxlag.simulate] releases such a constraint when its
       multiplier crosses zero and re-engages it (perfectly plastic impact) when ``f_i`` returns
       to zero. ``unilateral=jl.Unilateral(indices, restitution=e)`` sets Newton's coefficient
       of restitution ``ḟ⁺ = −e ḟ⁻`` at the impacts (the body rebounds for ``e > 0``).
-    - ``friction``: :class:`~jaxlag.Coulomb` elements (one or a sequence), Coulomb friction on
+    - ``friction``: [`Coulomb`][jaxlag.Coulomb] elements (one or a sequence), Coulomb friction on
       contact rows as a stick–slip element: ``M q̈ = F + Jᵀλ + Aᵀμ + Tᵀλ_t`` with
       ``λ_t = −μ sign(v_t) λ_N`` while slipping and ``v_t = 0`` while ``|λ_t| ≤ μ λ_N``.
 

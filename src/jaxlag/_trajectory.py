@@ -80,15 +80,15 @@ class Trajectory(eqx.Module):
 
     Derived quantities are computed on demand from the saved states, with the same system and
     parameters, under ``jit`` (inside a user's ``jit`` unused ones cost nothing). Batched
-    trajectories (from ``jax.vmap`` of :func:`~jaxlag.simulate`) carry leading batch axes and
+    trajectories (from ``jax.vmap`` of [`simulate`][jaxlag.simulate]) carry leading batch axes and
     their derived quantities do too.
 
     Multipliers and constraint forces are those of the exact constrained equations at the saved
     state (without any Baumgarte feedback term), with the convention ``M q̈ = F + Jᵀλ + Aᵀμ``.
-    With Coulomb friction (:class:`~jaxlag.Coulomb`) they are those of the frictional solve in
-    the stick/slip mode each contact was in at the saved time (:attr:`friction_modes`),
+    With Coulomb friction ([`Coulomb`][jaxlag.Coulomb]) they are those of the frictional solve in
+    the stick/slip mode each contact was in at the saved time (`friction_modes`),
     ``M q̈ = F + Jᵀλ + Aᵀμ + Tᵀλ_t``; the tangential forces ``λ_t`` are
-    :attr:`friction_forces` and ``constraint_forces`` includes ``Tᵀλ_t``.
+    `friction_forces` and ``constraint_forces`` includes ``Tᵀλ_t``.
     """
 
     t: Times
@@ -107,14 +107,14 @@ class Trajectory(eqx.Module):
     system_arrays: System
     #: Holonomic activity mask (T, m_h) when unilateral constraints switch, else None.
     active: Bool[Array, "*batch times m_h"] | None
-    #: :class:`~jaxlag.EventLog` of the switches and events, or None.
+    #: [`EventLog`][jaxlag.EventLog] of the switches and events, or None.
     events: EventLog | None
-    #: :class:`jaxlag._errors.Failure`: how the run ended (``code`` 0: completed), or None.
+    #: `jaxlag._errors.Failure`: how the run ended (``code`` 0: completed), or None.
     failure: Failure | None
     system_static: System = eqx.field(static=True)
-    #: Friction mode (T, k) of each :class:`~jaxlag.Coulomb` contact at the saved times: 0
+    #: Friction mode (T, k) of each [`Coulomb`][jaxlag.Coulomb] contact at the saved times: 0
     #: sticking, +1 slipping with ``v_t > 0``, −1 with ``v_t < 0`` (0 also where the contact's
-    #: normal row does not act, see :attr:`active`); None without friction.
+    #: normal row does not act, see `active`); None without friction.
     friction_modes: Int[Array, "*batch times k"] | None = None
 
     @classmethod
@@ -136,7 +136,8 @@ class Trajectory(eqx.Module):
         return cls(t, q, qd, args, stats, result, arrays, active, events, failure, static, modes)
 
     def raise_if_failed(self) -> None:
-        """Raise :class:`jaxlag.SimulationError` with the numbers and a diagnosis if the run
+        """Raise [`jaxlag.SimulationError`][jaxlag.SimulationError] with the numbers and a diagnosis if the
+        run
         did not complete (for a trajectory computed with ``throw=False``, e.g. under ``jit``;
         call it outside the transformation). Batched trajectories name the failed members."""
         if self.failure is None:
@@ -146,7 +147,7 @@ class Trajectory(eqx.Module):
 
     @property
     def system(self) -> System:
-        """The :class:`~jaxlag.System` that produced this trajectory."""
+        """The [`System`][jaxlag.System] that produced this trajectory."""
         return eqx.combine(self.system_arrays, self.system_static)
 
     def _get(self, name):
@@ -184,7 +185,7 @@ class Trajectory(eqx.Module):
 
     @property
     def friction_forces(self) -> Float[Array, "*batch times k"]:
-        """Tangential force ``λ_t`` (T, k) of each :class:`~jaxlag.Coulomb` contact, the
+        """Tangential force ``λ_t`` (T, k) of each [`Coulomb`][jaxlag.Coulomb] contact, the
         coefficient of ``Tᵀ`` (``T = ∂τ/∂q``) in ``M q̈ = F + Jᵀλ + Tᵀλ_t``: the stick row's
         multiplier while sticking (``|λ_t| ≤ μ λ_N``), ``−μ sign(v_t) λ_N`` while slipping, 0
         where the normal row does not act. Shape (T, 0) without friction."""

@@ -1,6 +1,6 @@
 r"""Structure-preserving constrained integration: RATTLE and variational integrators.
 
-:func:`simulate_variational` integrates a :class:`~jaxlag.System` with holonomic constraints
+`simulate_variational` integrates a [`System`][jaxlag.System] with holonomic constraints
 ``f(q, t) = 0`` by a *constrained variational integrator*: instead of discretizing the
 equations of motion it discretizes the action. A discrete Lagrangian
 ``L_d(q_k, q_{k+1}) ≈ ∫ L dt`` over one step of size ``h`` gives, in position–momentum form
@@ -18,7 +18,7 @@ second stage. Eliminating the momenta gives the discrete Euler–Lagrange equati
     D₂L_d(q_{k−1}, q_k) + D₁L_d(q_k, q_{k+1}) + f⁺_{k−1} + f⁻_k + h J(q_k)ᵀ (μ_{k−1} + λ_k)/2 = 0,
 
 the discrete counterpart of ``d/dt ∂L/∂q̇ − ∂L/∂q = Jᵀλ + Qⁿᶜ`` with jaxlag's sign convention
-(``M q̈ = F + Jᵀλ``), so the multipliers have the sign of :attr:`Trajectory.multipliers`.
+(``M q̈ = F + Jᵀλ``), so the multipliers have the sign of `Trajectory.multipliers`.
 
 Discrete Lagrangians (both second order, symmetric):
 
@@ -32,8 +32,8 @@ Discrete Lagrangians (both second order, symmetric):
 * ``method=jl.VariationalMidpoint()``: midpoint ``L_d = h L((q_k + q_{k+1})/2, v, t_k + h/2)``, for any
   regular ``L(q, q̇, t)``; position stage by Newton in ``(q_{k+1}, λ_k)``, velocity stage by Newton
   in ``(q̇_{k+1}, μ_k)`` unless ``L`` is quadratic in ``q̇`` (then linear).
-* ``method=None`` (default): :class:`Rattle` when ``L`` is recognisably quadratic in ``q̇``,
-  else :class:`VariationalMidpoint`.
+* ``method=None`` (default): `Rattle` when ``L`` is recognisably quadratic in ``q̇``,
+  else `VariationalMidpoint`.
 
 Higher order: ``order=4`` or ``6`` composes the symmetric step with Yoshida's coefficients (3 or
 7 substeps per step, some of negative size); the composition is still symplectic, symmetric and
@@ -46,9 +46,9 @@ Properties (float64): ``f = 0`` and ``J q̇ + ∂f/∂t = 0`` hold to the Newton
 step; the map ``(q_k, p_k) ↦ (q_{k+1}, p_{k+1})`` is symplectic on the constrained phase space, so
 the energy error of an autonomous conservative system stays bounded (``O(h²)``, no drift) over
 exponentially long times; momenta of symmetries of ``L_d`` and ``f`` are conserved to round-off
-(discrete Noether). Implicit steps use :func:`optimistix.root_find` with
-:class:`optimistix.Newton`; gradients go through them by the implicit function theorem
-(:class:`optimistix.ImplicitAdjoint`), not by unrolling Newton.
+(discrete Noether). Implicit steps use `optimistix.root_find` with
+`optimistix.Newton`; gradients go through them by the implicit function theorem
+(`optimistix.ImplicitAdjoint`), not by unrolling Newton.
 
 Which structure ``L`` has is read off its jaxpr (a static, conservative dependence analysis): a
 ``q̇``-independent ``∂²L/∂q̇²`` means quadratic, a ``(q, t)``-independent ``∂L/∂q̇`` means constant
@@ -70,22 +70,23 @@ import optimistix as optx
 from jax.typing import ArrayLike
 
 from . import _compile as compilation
-from ._mechanics import constraints as _constraints
-from ._misc import is_concrete
 from ._checks import Checks, validate_initial_state
-from ._mechanics.dependence import may_depend
-from ._mechanics.kkt import accelerations_and_multipliers, solve_kkt
-from ._mechanics.linalg import solve_spd
-from ._mechanics.lagrangian import as_time, mass_matrix, nonconservative_forces
 from ._conventions import as_array_leaves
 from ._custom_types import Args, Coordinates, RealScalarLike, Velocities
+from ._mechanics import constraints as _constraints
+from ._mechanics.dependence import may_depend
+from ._mechanics.kkt import accelerations_and_multipliers, solve_kkt
+from ._mechanics.lagrangian import as_time, mass_matrix, nonconservative_forces
+from ._mechanics.linalg import solve_spd
+from ._misc import is_concrete
 from ._system import System
 from ._trajectory import Trajectory
 
 
 class AbstractVariationalMethod(eqx.Module):
-    """The discrete Lagrangian of :func:`~jaxlag.simulate_variational`: :class:`~jaxlag.Rattle`
-    or :class:`~jaxlag.VariationalMidpoint` (``method=None`` picks one from the structure of
+    """The discrete Lagrangian of [`simulate_variational`][jaxlag.simulate_variational]:
+    [`Rattle`][jaxlag.Rattle]
+    or [`VariationalMidpoint`][jaxlag.VariationalMidpoint] (``method=None`` picks one from the structure of
     ``L``)."""
 
     rule: ClassVar[str]
@@ -126,7 +127,7 @@ class LagrangianStructure(NamedTuple):
 
 
 def lagrangian_structure(system: System, q, qd, t: ArrayLike = 0.0, args=None) -> LagrangianStructure:
-    """Analyse ``L`` statically (shapes only); see :class:`LagrangianStructure`."""
+    """Analyse ``L`` statically (shapes only); see `LagrangianStructure`."""
     q = jnp.asarray(q)
     qd = jnp.asarray(qd, q.dtype)
     t = as_time(t, q)
@@ -344,7 +345,7 @@ def _velocity_stage(scheme, system, q1, p_tilde, t1, args, qd_guess, constants):
 
 
 def _local_terms(scheme, system, q, qd, t, args):
-    """``(J, ∂L/∂q)`` at a state, as :func:`_step` hands them on (``None`` where unused)."""
+    """``(J, ∂L/∂q)`` at a state, as `_step` hands them on (``None`` where unused)."""
     jac = _constraint_jacobians(system, q, t, args)[1] if scheme.constrained else None
     force = _lagrangian_gradient(system, q, qd, t, args)[0] if scheme.explicit_positions else None
     return jac, force
@@ -558,19 +559,19 @@ def simulate_variational(
 ) -> Trajectory:
     r"""Integrate ``system`` with a constrained symplectic (variational / RATTLE) integrator.
 
-    A fixed-step sibling of :func:`~jaxlag.simulate` for long horizons: the constraints
+    A fixed-step sibling of [`simulate`][jaxlag.simulate] for long horizons: the constraints
     ``f(q, t) = 0`` and ``J q̇ + ∂f/∂t = 0`` hold to the Newton tolerance at every step, the energy
     error of a conservative autonomous system stays bounded instead of drifting, and momenta of
-    symmetries are conserved to round-off. See :mod:`jaxlag._variational` for the equations.
+    symmetries are conserved to round-off. See `jaxlag._variational` for the equations.
 
     **Arguments:**
 
-    - ``system``: a :class:`~jaxlag.System` with optional ``holonomic`` constraints (scleronomic
+    - ``system``: a [`System`][jaxlag.System] with optional ``holonomic`` constraints (scleronomic
       or rheonomic), ``dissipation`` and ``forces`` (discrete Lagrange–d'Alembert), and
       time-dependent ``L``. Velocity (Pfaffian) constraints, unilateral constraints and
       ``least_squares=True`` are not supported (``NotImplementedError``).
     - ``q0``, ``qd0``: initial coordinates and velocities on the constraint manifold (see
-      :func:`~jaxlag.consistent_initial_state`).
+      [`consistent_initial_state`][jaxlag.consistent_initial_state]).
     - ``dt``: the fixed step ``h`` (traced: a new value does not recompile, and gradients with
       respect to it exist); ``num_steps``: number of steps (static).
     - ``t0``: initial time; ``args``: parameters passed to every user function.
@@ -578,15 +579,15 @@ def simulate_variational(
       trajectory has ``num_steps // save_every + 1`` states including the initial one. Under
       reverse-mode differentiation each block of ``save_every`` steps is recomputed
       (checkpointed), so memory scales with the number of saves, not of steps.
-    - ``method``: :class:`~jaxlag.Rattle` (trapezoidal discrete Lagrangian; ``L`` quadratic in
-      ``q̇``), :class:`~jaxlag.VariationalMidpoint` (midpoint; any regular ``L``), or ``None``
+    - ``method``: [`Rattle`][jaxlag.Rattle] (trapezoidal discrete Lagrangian; ``L`` quadratic in
+      ``q̇``), [`VariationalMidpoint`][jaxlag.VariationalMidpoint] (midpoint; any regular ``L``), or ``None``
       (default: ``Rattle()`` when ``L`` is recognisably quadratic in ``q̇``, else
       ``VariationalMidpoint()``).
     - ``order``: 2 (the plain step), 4 or 6: symmetric compositions of it (Yoshida's triple
       jump, and his 7-stage method) of 3 or 7 substeps per step, some of negative size; still
       symplectic, symmetric and constraint-preserving. ``stats["multipliers"]`` stay second
       order; ``traj.multipliers`` (KKT at the saved states) have the order of the states.
-    - ``newton_rtol``, ``newton_atol``, ``max_newton_steps``: :class:`optimistix.Newton`
+    - ``newton_rtol``, ``newton_atol``, ``max_newton_steps``: `optimistix.Newton`
       tolerances (defaults ``1e-12`` in float64, ``1e-5`` in float32) and iteration limit per
       implicit solve. A solve stops when the last correction is below
       ``atol + rtol·|unknown|`` and the residual below ``atol``; the residuals are in the units
@@ -594,11 +595,11 @@ def simulate_variational(
       are meaningful as absolute numbers for problems of order-one scale; rescale otherwise.
     - ``throw``: raise (also under ``jit``) if a step fails; with ``False`` inspect
       ``traj.result`` and ``traj.stats["failed_step"]``.
-    - ``checks``: a :class:`~jaxlag.Checks`, as in :func:`~jaxlag.simulate`: ``initial_state``
+    - ``checks``: a [`Checks`][jaxlag.Checks], as in [`simulate`][jaxlag.simulate]: ``initial_state``
       and ``constraint_tolerance`` (default 1e-8 in float64, ``√ε`` in float32) apply; there
       are no save times to check (``times`` is ignored).
 
-    Returns a :class:`~jaxlag.Trajectory` whose ``qd`` are the velocities of the discrete
+    Returns a [`Trajectory`][jaxlag.Trajectory] whose ``qd`` are the velocities of the discrete
     Legendre transform projected onto ``J q̇ + ∂f/∂t = 0``; its derived quantities (energy,
     momenta, KKT multipliers) are computed from them as usual. ``traj.stats`` holds
     ``multipliers`` (the integrator's discrete multipliers ``(μ_{k−1} + λ_k)/2`` at the saved

@@ -2,7 +2,7 @@
 
 ``q̈`` solves ``M q̈ = F + Jᵀλ`` (with ``J q̈ = −γ`` and optional Baumgarte feedback) for a
 constrained system, ``M q̈ = F`` otherwise; with Coulomb friction in a given stick/slip mode
-``M q̈ = F + Jᵀλ + Tᵀλ_t`` (:mod:`jaxlag._mechanics.friction`).
+``M q̈ = F + Jᵀλ + Tᵀλ_t`` (`jaxlag._mechanics.friction`).
 """
 
 from __future__ import annotations

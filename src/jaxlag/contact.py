@@ -1,6 +1,6 @@
 r"""Rolling contact of a disk or a sphere on the ground plane ``z = 0`` (z up).
 
-The body is a :class:`~jaxlag.coordinates.RigidBody3D` whose centre of mass is the centre of the
+The body is a [`RigidBody3D`][jaxlag.coordinates.RigidBody3D] whose centre of mass is the centre of the
 disk or sphere. The contact point ``P`` is the lowest point of the body:
 
 * sphere of radius ``r``: ``P = x_c − r e_z``;
@@ -8,12 +8,12 @@ disk or sphere. The contact point ``P`` is the lowest point of the body:
   ``P = x_c − r u``, ``u = (e_z − (n·e_z) n)/|e_z − (n·e_z) n|`` (the in-plane direction that
   points most upward; undefined for a disk lying flat).
 
-**Contact** (holonomic, :func:`contact_height`): ``f(q) = P_z = 0``. Its multiplier is the
+**Contact** (holonomic, `contact_height`): ``f(q) = P_z = 0``. Its multiplier is the
 normal force: ``ḟ`` is the vertical velocity of the material point at ``P`` (the contact point
 slides along the rim horizontally), so ``Jᵀλ`` is the generalized force of the world force
 ``λ e_z`` applied at ``P``: ``λ = N``, positive when the ground pushes up.
 
-**Rolling without slipping** (:func:`rolling_without_slipping`): the velocity of the material
+**Rolling without slipping** (`rolling_without_slipping`): the velocity of the material
 point at ``P``, ``v_P = ẋ_c + ω × (P − x_c)`` (world axes), equals that of the ground (zero, or
 ``surface_velocity`` for a turntable or a conveyor). The constraint returns the two horizontal
 components of ``v_P − v_surface`` (the vertical one is ``ḟ``, already imposed by the contact
@@ -25,7 +25,7 @@ force on the body in world axes**, ``traj.velocity_multipliers == (F_x, F_y)``.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
@@ -119,7 +119,7 @@ def rolling_without_slipping(
 ) -> Callable:
     r"""Velocity constraint ``g(q, qd, t, args) = (v_P − v_s)_{x,y} = 0`` (shape (2,)).
 
-    - ``body``: a :class:`RigidBody3D` whose centre of mass is the disk's or sphere's centre.
+    - ``body``: a `RigidBody3D` whose centre of mass is the disk's or sphere's centre.
     - ``radius``: a number or a function of ``args``.
     - ``shape``: ``"disk"`` (a thin wheel with symmetry axis ``axis`` in body coordinates) or
       ``"sphere"``.

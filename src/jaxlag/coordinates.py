@@ -6,9 +6,9 @@ Instead of deriving the kinetic energy by hand, describe where the mass is:
 
 with ``ẋ`` computed by one forward-mode ``jax.jvp`` of the position map along ``(q̇, 1)`` in
 ``(q, t)`` (no Jacobian is formed). Point masses are given by a map ``positions(q, [t], [args])
--> (N, d)``; rigid planar bodies by :class:`RigidBody2D` (centre of mass and orientation angle,
+-> (N, d)``; rigid planar bodies by `RigidBody2D` (centre of mass and orientation angle,
 mass and moment of inertia about the centre of mass); rigid bodies in space by
-:class:`RigidBody3D` (centre of mass and rotation matrix, mass and inertia tensor, kinetic energy
+`RigidBody3D` (centre of mass and rotation matrix, mass and inertia tensor, kinetic energy
 ``½ m |ẋ_c|² + ½ ωᵀIω``). The potential is ``V(q, [t], [args])``
 and/or uniform gravity ``g`` along the last Cartesian axis (``+`` up).
 
@@ -28,7 +28,8 @@ position maps::
 
 from __future__ import annotations
 
-from typing import Callable, Sequence, cast
+from collections.abc import Callable, Sequence
+from typing import cast
 
 import equinox as eqx
 import jax
@@ -210,8 +211,9 @@ class RigidBody3D(eqx.Module):
 
     - ``pose``: ``pose(q, [t], [args]) -> (x_c, R)``: the centre of mass (3,) and the rotation
       matrix (3, 3) taking body components to world components. Any parameterization of ``R``
-      works: Euler angles (:func:`jaxlag.rotations.euler_matrix`), a quaternion
-      (:func:`jaxlag.rotations.quaternion_matrix`, with ``|q|² = 1`` as a holonomic constraint),
+      works: Euler angles ([`jaxlag.rotations.euler_matrix`][jaxlag.rotations.euler_matrix]), a quaternion
+      ([`jaxlag.rotations.quaternion_matrix`][jaxlag.rotations.quaternion_matrix], with ``|q|² = 1`` as a
+      holonomic constraint),
       the nine entries of ``R`` themselves (with ``RᵀR = I`` as constraints), or a product of
       joint rotations along a chain of bodies.
     - ``mass``: ``m``; ``inertia``: principal moments ``(I₁, I₂, I₃)`` or the inertia tensor
@@ -230,9 +232,9 @@ class RigidBody3D(eqx.Module):
     body turning about its fixed centre, like a gimbal; ``m < 0`` would reverse gravity and
     inertia); ``I`` symmetric and positive semidefinite with principal moments obeying the
     triangle inequality ``I_a + I_b ≥ I_c`` (equality: a lamina), within ``√ε`` relative
-    (:func:`inertia_tolerance`) -- constants when the body is built, functions of ``args`` at
+    (`inertia_tolerance`) -- constants when the body is built, functions of ``args`` at
     the initial state of a run. At the initial state ``R(q0)`` must be a rotation,
-    ``max |RᵀR − I| ≤ 100 √ε`` (:func:`pose_tolerance`) and ``det R > 0``, and a
+    ``max |RᵀR − I| ≤ 100 √ε`` (`pose_tolerance`) and ``det R > 0``, and a
     parametrization that can leave the rotations (a quaternion, nine free entries) must be
     held on them by holonomic constraints. A body point ``r`` must have shape (3,).
     """
@@ -419,16 +421,16 @@ def lagrangian_from_positions(
     - ``gravity``: optional ``g`` (number or function of ``args``): uniform gravity along the
       last Cartesian axis, which points up, ``V_g = g (Σ_k m_k x_k[-1] + Σ_b m_b h_b)`` with
       ``h_b`` the height of a body's centre of mass (``y_c`` in the plane, ``z_c`` in space).
-    - ``bodies``: :class:`RigidBody2D` (planar, y up) and :class:`RigidBody3D` (in space, z up)
+    - ``bodies``: `RigidBody2D` (planar, y up) and `RigidBody3D` (in space, z up)
       instances.
 
     ``T = ½ Σ m |ẋ|² (+ bodies)``, ``ẋ = (∂x/∂q) q̇ + ∂x/∂t`` by forward-mode autodiff. The
-    returned function declares ``t`` and ``args``; pass it to :class:`jaxlag.System`.
+    returned function declares ``t`` and ``args``; pass it to [`jaxlag.System`][jaxlag.System].
 
     Checks: constant masses and inertias when the bodies are built; masses and inertias that
     are functions of ``args``, and each body's rotation ``R(q0)``, at the initial state of a run
     (masses ``≥ 0``; inertias symmetric, positive semidefinite, principal moments obeying
-    ``I_a + I_b ≥ I_c``; ``R`` orthonormal with ``det R = +1`` within :func:`pose_tolerance`; a
+    ``I_a + I_b ≥ I_c``; ``R`` orthonormal with ``det R = +1`` within `pose_tolerance`; a
     parametrization that can leave the rotations, such as a quaternion, held by a holonomic
     constraint). A singular mass matrix caused by gimbal lock of a body's
     Euler angles is reported as such.
@@ -587,7 +589,7 @@ def _inertia_problem(value, traced: bool = False):
 
 def _validated(value, owner: str, name: str, problem):
     """A constant mass or inertia checked when the body is built (a function of ``args`` is
-    checked at the initial state of a run, by :func:`_check_bodies`)."""
+    checked at the initial state of a run, by `_check_bodies`)."""
     if callable(value):
         return value
     if is_concrete(value):
@@ -610,10 +612,10 @@ def _offset(point, size: int, owner: str, dtype):
 
 
 class _PositionLagrangian(AbstractLagrangianChecks):
-    """The Lagrangian built by :func:`lagrangian_from_positions`: a plain callable (static under
+    """The Lagrangian built by `lagrangian_from_positions`: a plain callable (static under
     ``jit``, like the function it replaces) that also knows its bodies and point masses, and
-    implements the core's hook :class:`~jaxlag._checks.AbstractLagrangianChecks` so that the
-    initial-state check validates them (:func:`_check_bodies`)."""
+    implements the core's hook `AbstractLagrangianChecks` so that the
+    initial-state check validates them (`_check_bodies`)."""
 
     def __init__(self, fn, positions, masses, bodies):
         self._fn = fn
@@ -818,7 +820,7 @@ def _singularity_message(system, lagrangian, v, q, qd, t, args) -> str | None:
 
 
 def _traced_checks(lagrangian, v, q):
-    """``(flags, messages)`` of the same checks as :func:`_host_problem`, for traced values."""
+    """``(flags, messages)`` of the same checks as `_host_problem`, for traced values."""
     dtype = q.dtype
     flags, messages = [], []
     problems = {RigidBody3D: _inertia_problem, RigidBody2D: _planar_inertia_problem}
@@ -859,9 +861,9 @@ _COMPILED = " (Checked inside a compiled program: call outside jit/vmap/grad to 
 
 def _check_bodies(lagrangian: _PositionLagrangian, system, q, qd, t, args):
     """Validate the rigid bodies and point masses of a Lagrangian built by
-    :func:`lagrangian_from_positions` at the initial state ``(q0, t0, args)``: masses ``≥ 0``,
+    `lagrangian_from_positions` at the initial state ``(q0, t0, args)``: masses ``≥ 0``,
     inertias symmetric, positive semidefinite, obeying the triangle inequality; each
-    ``R(q0)`` a rotation within :func:`pose_tolerance`; no direction that moves ``R`` off the
+    ``R(q0)`` a rotation within `pose_tolerance`; no direction that moves ``R`` off the
     rotations unless a holonomic constraint forbids it; and, when ``M`` is singular because a
     body's orientation coordinates are (gimbal lock), a message that says so. Concrete values
     raise ``ValueError`` with the numbers; traced ones return ``q`` carrying
@@ -891,9 +893,9 @@ def _check_bodies(lagrangian: _PositionLagrangian, system, q, qd, t, args):
 
 
 def _body_diagnostics(lagrangian: _PositionLagrangian, system, q, t, args):
-    """The checks of :func:`_check_bodies` as values, traceable and without a callback (for
+    """The checks of `_check_bodies` as values, traceable and without a callback (for
     batch programs that return their checks to the host): ``(values, flags)``, or ``None``
-    when there is nothing to check. :func:`_raise_for_bodies` raises from them on the host."""
+    when there is nothing to check. `_raise_for_bodies` raises from them on the host."""
     spatial = any(isinstance(b, RigidBody3D) for b in lagrangian.bodies)
     parameters = [b.mass for b in lagrangian.bodies] + [b.inertia for b in lagrangian.bodies]
     parameters += [lagrangian.masses] if lagrangian.positions is not None else []
@@ -908,7 +910,7 @@ def _body_diagnostics(lagrangian: _PositionLagrangian, system, q, t, args):
 
 def _raise_for_bodies(lagrangian: _PositionLagrangian, diagnostics, q) -> None:
     """Raise ``ValueError`` with the numbers for the first batch member whose bodies fail the
-    checks of :func:`_body_diagnostics` (``diagnostics`` and ``q`` with or without a leading
+    checks of `_body_diagnostics` (``diagnostics`` and ``q`` with or without a leading
     batch axis)."""
     if diagnostics is None:
         return

@@ -3,10 +3,10 @@ r"""Time-table inputs: ``u(t)`` from samples ``(tᵢ, uᵢ)``, for forces, torqu
 Three interpolations of one table ``ts = (t₀ < t₁ < … < t_{N−1})``, ``values`` of shape
 ``(N,)`` or ``(N, *shape)``:
 
-- :class:`ZeroOrderHold`: ``u(t) = uᵢ`` for ``tᵢ ≤ t < tᵢ₊₁`` (piecewise constant, right-continuous:
+- `ZeroOrderHold`: ``u(t) = uᵢ`` for ``tᵢ ≤ t < tᵢ₊₁`` (piecewise constant, right-continuous:
   at a sample time the new value already holds). Jumps at ``t₁, …, t_{N−1}``.
-- :class:`PiecewiseLinear`: straight lines between the samples. Continuous, kinks at the samples.
-- :class:`CubicSpline`: the natural cubic spline through the samples (``u″ = 0`` at both ends).
+- `PiecewiseLinear`: straight lines between the samples. Continuous, kinks at the samples.
+- `CubicSpline`: the natural cubic spline through the samples (``u″ = 0`` at both ends).
   Twice continuously differentiable; ``u‴`` jumps at the samples.
 
 Outside ``[t₀, t_{N−1}]`` every table holds its end value (``u(t) = u₀`` before ``t₀`` and
@@ -24,9 +24,9 @@ args_axes=0)``) and ``jax.grad`` with respect to ``values`` (trajectory optimiza
 
 **Breakpoints.** The equations of motion are not smooth at the samples (a hold jumps, a linear
 table has kinks), and an adaptive step-size controller that does not know where they are either
-wastes rejected steps there or, with a short pulse, steps over it. :func:`~jaxlag.simulate` finds
+wastes rejected steps there or, with a short pulse, steps over it. [`simulate`][jaxlag.simulate] finds
 every table in ``args`` and makes the solver step exactly onto its breakpoints: the jumps of a
-:class:`ZeroOrderHold` become diffrax ``jump_ts`` (the step ends just before the jump and the next
+`ZeroOrderHold` become diffrax ``jump_ts`` (the step ends just before the jump and the next
 one starts just after it, re-evaluating the vector field), the samples of the other tables
 ``step_ts``. This is done for the default controller and for any adaptive controller you give (a
 ``diffrax.PIDController``, or a ``diffrax.ClipStepSizeController`` whose own ``step_ts`` and
@@ -37,10 +37,18 @@ by a closure), pass ``stepsize_controller=inputs.with_breakpoints(controller, ta
 
 from ._inputs import (
     AbstractTimeTable as AbstractTimeTable,
+)
+from ._inputs import (
     CubicSpline as CubicSpline,
+)
+from ._inputs import (
     PiecewiseLinear as PiecewiseLinear,
-    with_breakpoints as with_breakpoints,
+)
+from ._inputs import (
     ZeroOrderHold as ZeroOrderHold,
+)
+from ._inputs import (
+    with_breakpoints as with_breakpoints,
 )
 
 __all__ = [

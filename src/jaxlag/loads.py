@@ -12,7 +12,7 @@ to the load (``jax.linear_transpose`` of a ``jvp``, a reverse pass): no Jacobian
 
 Loads may depend on the state, the time and the parameters (springs, dampers, actuators):
 ``force(q, qd, [t], [args]) -> (d,)`` and ``torque(q, qd, [t], [args]) -> (3,)`` (a scalar for a
-:class:`~jaxlag.coordinates.RigidBody2D`) follow the library's calling convention; a constant
+[`RigidBody2D`][jaxlag.coordinates.RigidBody2D]) follow the library's calling convention; a constant
 array may be given instead of a function::
 
     tip = (arm, jnp.array([0.0, 0.0, 0.5]))              # body point, body coordinates
@@ -23,7 +23,7 @@ array may be given instead of a function::
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import equinox as eqx
 import jax
@@ -47,7 +47,7 @@ def point_map(point: PointLike) -> UserFunction:
     """A point as a position map ``x(q, [t], [args]) -> (d,)``.
 
     ``point`` is a ``(body, r)`` pair (a body point with body coordinates ``r``, on a
-    :class:`RigidBody3D` or :class:`RigidBody2D`) or a position map itself.
+    `RigidBody3D` or `RigidBody2D`) or a position map itself.
     """
     if isinstance(point, tuple) and len(point) == 2 and isinstance(point[0], _BODIES):
         body, offset = point
@@ -186,7 +186,7 @@ def _world_rate(rotation, rate):
 def generalized_forces(*loads: Force | Torque | Sequence[Force | Torque]) -> Callable:
     r"""``Q(q, qd, t, args) = Σ (∂ẋ_p/∂q̇)ᵀ F_p + Σ (∂ω/∂q̇)ᵀ τ``: pass it as ``System(forces=...)``.
 
-    Each load is a :class:`Force` or a :class:`Torque` (or a sequence of them).
+    Each load is a `Force` or a `Torque` (or a sequence of them).
     """
     flat = []
     for load in loads:

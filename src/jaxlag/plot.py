@@ -3,12 +3,12 @@
 Small functions that each draw one thing on a matplotlib axes and return what they drew, so that
 they compose with ordinary matplotlib code:
 
-- :func:`chain`: a planar (or spatial) chain or linkage at one instant, from its points;
-- :func:`snapshots`: the same chain at several saved times of a trajectory, overlaid;
-- :func:`body_axes`: the three body axes of a rigid body in 3-D, from its pose ``(x_c, R)``;
-- :func:`energy`: the relative energy drift ``(E(t) − E(0)) / |E(0)|`` over time;
-- :func:`constraint_drift`: the constraint residuals ``‖f‖∞``, ``‖ḟ‖∞``, ``‖g‖∞`` over time;
-- :func:`animate` and :func:`animate_chain`: an animation saved to a file (a GIF needs only
+- `chain`: a planar (or spatial) chain or linkage at one instant, from its points;
+- `snapshots`: the same chain at several saved times of a trajectory, overlaid;
+- `body_axes`: the three body axes of a rigid body in 3-D, from its pose ``(x_c, R)``;
+- `energy`: the relative energy drift ``(E(t) − E(0)) / |E(0)|`` over time;
+- `constraint_drift`: the constraint residuals ``‖f‖∞``, ``‖ḟ‖∞``, ``‖g‖∞`` over time;
+- `animate` and `animate_chain`: an animation saved to a file (a GIF needs only
   Pillow, which comes with matplotlib).
 
 Each takes ``ax=None``: a new figure is made when no axes is given. matplotlib is imported when
@@ -178,7 +178,8 @@ def chain(
     """Draw a chain or linkage at one instant: its points joined by straight links.
 
     ``points`` (n_points, 2) or (n_points, 3) are the joint or bob positions in order, e.g.
-    :func:`jaxlag.coordinates.planar_chain` of the angles; ``origin`` is prepended (a fixed pivot)
+    [`jaxlag.coordinates.planar_chain`][jaxlag.coordinates.planar_chain] of the angles; ``origin`` is
+    prepended (a fixed pivot)
     and ``closed=True`` joins the last point back to the first (a closed loop). Extra keyword
     arguments go to ``ax.plot`` (the defaults are circles at the joints joined by thick lines).
     A 2-D axes made here has an equal aspect ratio; 3-D points need a 3-D axes.
@@ -207,8 +208,8 @@ def snapshots(
 ) -> list[Line2D]:
     """Overlay a mechanism at several saved states of a trajectory (a stroboscopic picture).
 
-    ``positions(q)`` maps one row of coordinates to the mechanism's points, as for :func:`chain`;
-    ``traj`` is a :class:`jaxlag.Trajectory` or its coordinates ``q`` (times, n). ``frames`` is
+    ``positions(q)`` maps one row of coordinates to the mechanism's points, as for `chain`;
+    ``traj`` is a [`jaxlag.Trajectory`][jaxlag.Trajectory] or its coordinates ``q`` (times, n). ``frames`` is
     the number of evenly spaced saved states to draw (first and last included) or their indices.
     Earlier states are drawn fainter: the opacity rises linearly from ``fade[0]`` to ``fade[1]``.
 
@@ -240,8 +241,9 @@ def body_axes(
 ) -> list[Line2D]:
     """Draw the three body axes of a rigid body in 3-D, at its pose ``(x_c, R)``.
 
-    ``R`` maps body to world components (as :mod:`jaxlag.rotations` builds it and as a
-    :class:`jaxlag.coordinates.RigidBody3D` pose returns it), so the body's k-th axis in world
+    ``R`` maps body to world components (as `jaxlag.rotations` builds it and as a
+    [`jaxlag.coordinates.RigidBody3D`][jaxlag.coordinates.RigidBody3D] pose returns it), so the body's k-th
+    axis in world
     axes is the column ``R[:, k]``: the k-th segment runs from ``x_c`` to ``x_c + length·R[:, k]``,
     in ``colors[k]`` (red, green, blue for x, y, z). Needs a 3-D axes
     (``fig.add_subplot(projection="3d")``); one is made when ``ax`` is None.
@@ -400,12 +402,12 @@ def animate_chain(
 ) -> FuncAnimation:
     """Save an animation of a planar chain or linkage moving along a trajectory.
 
-    One frame per ``every``-th saved state of ``traj`` (a :class:`jaxlag.Trajectory` or its
-    coordinates ``q`` (times, n)), the mechanism drawn by :func:`chain` from ``positions(q)``
+    One frame per ``every``-th saved state of ``traj`` (a [`jaxlag.Trajectory`][jaxlag.Trajectory] or its
+    coordinates ``q`` (times, n)), the mechanism drawn by `chain` from ``positions(q)``
     (points (n_points, 2)) with ``origin`` and ``closed`` as there. ``trace`` is the index of the
     point (in ``positions(q)``) whose path is drawn as it goes, by default the last one (the tip of
     a chain; None: no path). The title shows the time ``t`` of a Trajectory.
-    The axis limits are fixed to hold every frame. See :func:`animate` for ``path``, ``fps`` and
+    The axis limits are fixed to hold every frame. See `animate` for ``path``, ``fps`` and
     ``dpi``. Returns the animation; the figure is closed when ``ax`` is None.
     """
     q, t = _states(traj, "animate_chain")

@@ -11,12 +11,12 @@ Conventions (used throughout jaxlag):
   ``R = R_{s₃}(a₃) R_{s₂}(a₂) R_{s₁}(a₁)``. Any sequence of three letters from ``xyz`` with no
   two neighbours equal is accepted: ``"zxz"`` (classical mechanics: precession, nutation,
   spin), ``"zyx"`` (yaw, pitch, roll), ``"xyz"``, ``"zyz"``, ...
-* Quaternions are ``(w, x, y, z)``, scalar first. :func:`quaternion_matrix` uses the quadratic
+* Quaternions are ``(w, x, y, z)``, scalar first. `quaternion_matrix` uses the quadratic
   form ``R = (w² − v·v) I + 2 v vᵀ + 2 w [v]ₓ`` without normalizing: for a unit quaternion it is
   the rotation; off the unit sphere it is ``|q|²`` times a rotation, so a Lagrangian in terms of
   it keeps a positive-definite mass matrix and ``|q|² = 1`` can be a holonomic constraint.
 * Angular velocity: ``[ω_body]ₓ = RᵀṘ`` and ``[ω_world]ₓ = Ṙ Rᵀ``, ``ω_world = R ω_body``.
-  :func:`angular_velocity` forms ``Ṙ = (∂R/∂q) q̇ + ∂R/∂t`` by one ``jax.jvp`` of the
+  `angular_velocity` forms ``Ṙ = (∂R/∂q) q̇ + ∂R/∂t`` by one ``jax.jvp`` of the
   orientation map along ``(q̇, 1)``; the vector is read off the skew part (exact when ``R`` is
   orthogonal).
 
@@ -34,7 +34,7 @@ quaternion + ``|q|² = 1``           nowhere (``q`` and ``−q`` are one rotatio
 nine entries of ``R`` + ``RᵀR = I``   nowhere                                      —
 =================================  ==========================================  =====================
 
-:func:`gimbal_lock_margin` measures the distance to the Euler singularity (``|sin a₂|`` or
+`gimbal_lock_margin` measures the distance to the Euler singularity (``|sin a₂|`` or
 ``|cos a₂|``, 0 at gimbal lock).
 """
 
@@ -42,7 +42,8 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
-from typing import Callable, Iterator, cast
+from collections.abc import Callable, Iterator
+from typing import cast
 
 import jax
 import jax.numpy as jnp
@@ -74,7 +75,7 @@ _EULER_CALLS: contextvars.ContextVar[list | None] = contextvars.ContextVar("jaxl
 
 @contextlib.contextmanager
 def record_euler_calls() -> Iterator[list]:
-    """Within the block, :func:`euler_matrix` appends ``(sequence, extrinsic, angles)`` to the
+    """Within the block, `euler_matrix` appends ``(sequence, extrinsic, angles)`` to the
     yielded list (private: used by the diagnosis of coordinate singularities)."""
     calls: list = []
     token = _EULER_CALLS.set(calls)
@@ -144,7 +145,7 @@ def skew(vector: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
 
 
 def unskew(matrix: Float[ArrayLike, "3 3"]) -> Float[Array, "3"]:
-    """The vector ``v`` of the skew part of ``W``: ``½(W − Wᵀ) = [v]ₓ`` (inverse of :func:`skew`)."""
+    """The vector ``v`` of the skew part of ``W``: ``½(W − Wᵀ) = [v]ₓ`` (inverse of `skew`)."""
     w = _float(matrix)
     if w.shape != (3, 3):
         raise ValueError(f"unskew expects a matrix of shape (3, 3); got shape {w.shape}.")
@@ -179,7 +180,7 @@ def euler_matrix(
     ``R = R_{s₃}(a₃) R_{s₂}(a₂) R_{s₁}(a₁)``. ``"zyx"`` intrinsic is yaw–pitch–roll; ``"zxz"``
     is the classical ``(φ, θ, ψ)`` = (precession, nutation, spin), singular (gimbal lock) at
     ``θ = 0, π``; every proper sequence (first axis = last) is singular at ``a₂ = 0, π``, every
-    Tait–Bryan sequence (``"zyx"``: pitch) at ``a₂ = ±π/2`` (:func:`gimbal_lock_margin`).
+    Tait–Bryan sequence (``"zyx"``: pitch) at ``a₂ = ±π/2`` (`gimbal_lock_margin`).
     """
     _check_sequence(sequence)
     angles = _float(angles)
@@ -199,7 +200,8 @@ def quaternion_matrix(quaternion: Float[ArrayLike, "4"]) -> Float[Array, "3 3"]:
 
     The rotation for a unit quaternion. Deliberately not normalized: for ``q = s u`` (``u``
     unit) it is ``s² R(u)``, so scaling ``q`` changes ``R`` and a kinetic energy built on it
-    (see :class:`jaxlag.coordinates.RigidBody3D`) stays positive definite in all four
+    (see [`jaxlag.coordinates.RigidBody3D`][jaxlag.coordinates.RigidBody3D]) stays positive definite in all
+    four
     directions. Impose ``q·q − 1 = 0`` as a holonomic constraint.
     """
     q = _float(quaternion)

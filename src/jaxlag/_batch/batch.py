@@ -1,9 +1,9 @@
 r"""``simulate_batch``: many simulations in one compiled call, optionally sharded across devices.
 
-A batch is ``jax.vmap`` of :func:`~jaxlag.simulate` over the leading axis of the initial states
+A batch is ``jax.vmap`` of [`simulate`][jaxlag.simulate] over the leading axis of the initial states
 and of selected parameter leaves, compiled once with ``jax.jit``. Every member integrates the
 same equations ``M q̈ = F + Jᵀλ + Aᵀμ`` with its own ``(q0, q̇0, args)``; constrained systems,
-unilateral constraints and :class:`~jaxlag.Event` s work unchanged (each member switches at its
+unilateral constraints and [`Event`][jaxlag.Event] s work unchanged (each member switches at its
 own times).
 
 Memory grows linearly in the batch size ``B``: the program holds ``B`` copies of the solver state
@@ -13,12 +13,13 @@ has finished (finished members are masked), so a batch costs ``B ×`` the larges
 it. Group members of similar stiffness, or use a constant step.
 
 With ``method=jl.Ensemble()`` the batch is instead an array axis of one batched Runge–Kutta
-loop (:func:`jaxlag.experimental.simulate_ensemble`): no per-member solver loop, each member
+loop ([`jaxlag.experimental.simulate_ensemble`][jaxlag.experimental.simulate_ensemble]): no per-member
+solver loop, each member
 with its own step size when adaptive; ``method=None`` (the default) uses it on accelerators for
 constant steps and keeps ``jl.Vmap()`` everywhere else (always on CPU).
 
 Sharding uses JAX's own machinery. With ``sharding="auto"`` the batch axis is split over every
-device of ``jax.devices()`` (a 1-D :class:`jax.sharding.Mesh` named ``"batch"``): batched inputs
+device of ``jax.devices()`` (a 1-D `jax.sharding.Mesh` named ``"batch"``): batched inputs
 are placed with ``jax.device_put(x, NamedSharding(mesh, P("batch")))``, shared inputs are
 replicated, and XLA's SPMD partitioner splits the jitted, vmapped program so that each device
 integrates its own slice; the outputs stay sharded along the batch axis. The devices exchange
@@ -49,10 +50,10 @@ from typing_extensions import Unpack
 from .. import _checks as checking
 from .. import _diagnosis
 from .. import _errors as failures
-from .._errors import FailureCode
 from .._checks import Checks
 from .._conventions import as_array_leaves, as_float_state, as_jax_array
 from .._custom_types import Args
+from .._errors import FailureCode
 from .._events import as_events
 from .._misc import is_concrete
 from .._options import SimulateOptions, check_option_names, default_option
@@ -165,7 +166,7 @@ def simulate_batch(
 
     **Arguments:**
 
-    - ``system``: a :class:`~jaxlag.System` (shared by the whole batch).
+    - ``system``: a [`System`][jaxlag.System] (shared by the whole batch).
     - ``q0``, ``qd0``: ``(B, n)`` per-member initial states, or ``(n,)`` shared by all members.
     - ``ts``: save times ``(T,)``, shared (or ``t0``/``t1``/``saveat``).
     - ``args``: parameters, any pytree.
@@ -174,25 +175,26 @@ def simulate_batch(
       length ``B``), or a pytree prefix of ``args`` with ``0``/``None`` entries, e.g.
       ``{"g": 0, "l": None}``.
     - ``sharding``: ``None`` (one device), ``"auto"`` (split the batch over all devices of
-      ``jax.devices()``), a :class:`jax.sharding.Mesh` (split over all its axes) or a
-      :class:`jax.sharding.NamedSharding` whose spec's first entry splits the batch axis. The
+      ``jax.devices()``), a `jax.sharding.Mesh` (split over all its axes) or a
+      `jax.sharding.NamedSharding` whose spec's first entry splits the batch axis. The
       batch is padded to a multiple of the number of shards and un-padded on return.
-    - ``method``: :class:`~jaxlag.Vmap` (``jl.Vmap()``: ``jax.vmap`` of
-      :func:`~jaxlag.simulate`: every option, events, unilateral constraints),
-      :class:`~jaxlag.Ensemble` (``jl.Ensemble(backend="auto")``: one batched Runge–Kutta loop
-      for the whole batch, :func:`jaxlag.experimental.simulate_ensemble`: explicit tableau
+    - ``method``: [`Vmap`][jaxlag.Vmap] (``jl.Vmap()``: ``jax.vmap`` of
+      [`simulate`][jaxlag.simulate]: every option, events, unilateral constraints),
+      [`Ensemble`][jaxlag.Ensemble] (``jl.Ensemble(backend="auto")``: one batched Runge–Kutta loop
+      for the whole batch, [`jaxlag.experimental.simulate_ensemble`][jaxlag.experimental.simulate_ensemble]:
+      explicit tableau
       solvers, constant or PID steps; ``ts`` may then also be per member, ``(B, T)``; ``backend`` ``"xla"``,
       ``"pallas"``, ``"pallas-interpret"`` or ``"auto"``) or ``None`` (default): ``jl.Ensemble()``
       on an accelerator (GPU/TPU) for constant steps whose step divides the save intervals (the
       result equals the vmap one to rounding), ``jl.Vmap()`` otherwise, in particular always on
       CPU.
-    - ``**options``: the options of :func:`~jaxlag.simulate` (a
-      :class:`~jaxlag.SimulateOptions`: ``t0``, ``t1``, ``solver``, ``stepsize_controller``,
+    - ``**options``: the options of [`simulate`][jaxlag.simulate] (a
+      [`SimulateOptions`][jaxlag.SimulateOptions]: ``t0``, ``t1``, ``solver``, ``stepsize_controller``,
       ``dt0``, ``saveat``, ``max_steps``, ``adjoint``, ``event``, ``throw``, ``progress_meter``,
       ``baumgarte``, ``projection``, ``checks`` and ``events``), with its defaults, applied to
       every member; ``throw=True`` raises once for the batch, naming the first failed member.
 
-    Returns a :class:`~jaxlag.Trajectory` whose leaves all have a leading batch axis ``B``
+    Returns a [`Trajectory`][jaxlag.Trajectory] whose leaves all have a leading batch axis ``B``
     (``q``: ``(B, T, n)``), exactly what ``jax.vmap`` of ``simulate`` gives; its derived
     quantities (``energy``, ``multipliers``, ...) are batched too. With a sharding, the arrays
     are sharded over the devices along that axis.
@@ -304,9 +306,9 @@ def _placed(problem: BatchProblem, sharding: NamedSharding) -> BatchProblem:
 
 
 def _default_method(problem: BatchProblem, options: SimulateOptions) -> AbstractBatchMethod:
-    """``method=None``: :class:`~jaxlag.Vmap` on CPU; on an accelerator :class:`~jaxlag.Ensemble`
+    """``method=None``: [`Vmap`][jaxlag.Vmap] on CPU; on an accelerator [`Ensemble`][jaxlag.Ensemble]
     for constant steps whose step divides the save intervals (the result equals the vmap one
-    to rounding), :class:`~jaxlag.Vmap` otherwise."""
+    to rounding), [`Vmap`][jaxlag.Vmap] otherwise."""
     if jax.default_backend() == "cpu":
         return Vmap()
     from ..experimental._ensemble.entry import ensemble_by_default
@@ -315,7 +317,7 @@ def _default_method(problem: BatchProblem, options: SimulateOptions) -> Abstract
 
 
 def _raise_for_failed_members(out: Trajectory, throw: bool, system, batched_args, shared_args) -> Trajectory:
-    """``throw=True``: raise :class:`~jaxlag.SimulationError` naming the first failed member
+    """``throw=True``: raise [`SimulationError`][jaxlag.SimulationError] naming the first failed member
     (eagerly, with its numbers and diagnosis), or compile the check in under a transformation."""
     if not throw or out.failure is None:
         return out
@@ -355,7 +357,7 @@ def _raise_for_local_members(failure) -> None:
 
 def _member_args(batched_args, shared_args):
     """Host args with a leading batch axis on the batched leaves and size 1 on the shared ones
-    (the layout :func:`jaxlag._diagnosis.member` indexes)."""
+    (the layout `jaxlag._diagnosis.member` indexes)."""
     batched = jax.tree.map(np.asarray, batched_args)
     shared = jax.tree.map(lambda x: np.asarray(x)[None] if eqx.is_array_like(x) else x, shared_args)
     return eqx.combine(batched, shared)

@@ -1,5 +1,5 @@
 """``method=jl.Ensemble()``: the batch as an array axis of one Runge–Kutta loop, run by the
-experimental ensemble integrator (:mod:`jaxlag.experimental`, imported when first used)."""
+experimental ensemble integrator (`jaxlag.experimental`, imported when first used)."""
 
 from typing import Literal, get_args
 
@@ -13,16 +13,17 @@ EnsembleBackend = Literal["auto", "xla", "pallas", "pallas-interpret"]
 
 
 class Ensemble(AbstractBatchMethod):
-    """One batched Runge–Kutta loop for the whole batch (:func:`jaxlag.experimental.simulate_ensemble`):
+    """One batched Runge–Kutta loop for the whole batch
+    ([`jaxlag.experimental.simulate_ensemble`][jaxlag.experimental.simulate_ensemble]):
     explicit Runge–Kutta solvers with a Butcher tableau (``diffrax.Tsit5()``, ``diffrax.Dopri5()``,
     ``jl.RK4()``, ...), constant or PID steps, each member with its own step size when
     adaptive; per-member save times ``ts`` of shape ``(B, T)`` are allowed.
     Events, unilateral constraints and progress meters are not supported: the options
     ``events``, ``event`` and ``progress_meter`` are a ``ValueError`` that points to
-    :class:`~jaxlag.Vmap`. Failed members are reported as :class:`~jaxlag.Vmap`
+    [`Vmap`][jaxlag.Vmap]. Failed members are reported as [`Vmap`][jaxlag.Vmap]
     reports them: ``traj.failure`` and ``traj.result`` per member (a state that became
     non-finite, a step size that collapsed, ``max_steps``), their unreached saves ``inf``, and
-    ``throw=True`` raises :class:`~jaxlag.SimulationError` naming the first failed member.
+    ``throw=True`` raises [`SimulationError`][jaxlag.SimulationError] naming the first failed member.
 
     ``backend``: ``"xla"`` (the loop as XLA operations), ``"pallas"`` (one fused Pallas kernel,
     constant steps; falls back to ``"xla"`` with a warning if the equations do not lower),

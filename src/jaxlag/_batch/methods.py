@@ -1,4 +1,4 @@
-"""How :func:`~jaxlag.simulate_batch` integrates a batch: the abstract method and the problem
+"""How [`simulate_batch`][jaxlag.simulate_batch] integrates a batch: the abstract method and the problem
 that every method receives (``method=None``: chosen by ``simulate_batch``)."""
 
 import abc
@@ -15,7 +15,7 @@ from .._trajectory import Trajectory
 
 
 class BatchProblem(eqx.Module):
-    """A batch as :func:`~jaxlag.simulate_batch` prepared it: checked, placed on the devices
+    """A batch as [`simulate_batch`][jaxlag.simulate_batch] prepared it: checked, placed on the devices
     of ``sharding`` (``None``: one device) and padded with ``pad`` copies of the last member to
     a multiple of the number of shards, ``size`` real members before the padding.
 
@@ -42,16 +42,16 @@ class BatchProblem(eqx.Module):
 
 
 class AbstractBatchMethod(eqx.Module):
-    """How :func:`~jaxlag.simulate_batch` integrates the batch: :class:`~jaxlag.Vmap` or
-    :class:`~jaxlag.Ensemble`. (``method=None`` picks one; see ``simulate_batch``.)
+    """How [`simulate_batch`][jaxlag.simulate_batch] integrates the batch: [`Vmap`][jaxlag.Vmap] or
+    [`Ensemble`][jaxlag.Ensemble]. (``method=None`` picks one; see ``simulate_batch``.)
 
-    A method implements :meth:`simulate`; ``simulate_batch`` prepares the
-    :class:`BatchProblem` before and raises for the failed members after it."""
+    A method implements `simulate`; ``simulate_batch`` prepares the
+    `BatchProblem` before and raises for the failed members after it."""
 
     @abc.abstractmethod
     def simulate(self, problem: BatchProblem, options: SimulateOptions) -> Trajectory:
-        """Every member of ``problem`` simulated with the options of :func:`~jaxlag.simulate`
+        """Every member of ``problem`` simulated with the options of [`simulate`][jaxlag.simulate]
         given in ``options`` (those left out: ``simulate``'s defaults): a
-        :class:`~jaxlag.Trajectory` with a leading batch axis of ``problem.size`` members,
+        [`Trajectory`][jaxlag.Trajectory] with a leading batch axis of ``problem.size`` members,
         the padding dropped, whose failed members are recorded in ``failure`` (not raised).
         Invalid input, including the initial states, raises here."""

@@ -1,4 +1,4 @@
-"""``method=jl.Vmap()``: ``jax.vmap`` of :func:`~jaxlag.simulate` over the batch."""
+"""``method=jl.Vmap()``: ``jax.vmap`` of [`simulate`][jaxlag.simulate] over the batch."""
 
 import dataclasses
 
@@ -16,7 +16,7 @@ from .methods import AbstractBatchMethod, BatchProblem
 
 
 class Vmap(AbstractBatchMethod):
-    """``jax.vmap`` of :func:`~jaxlag.simulate`: every option of ``simulate`` (events,
+    """``jax.vmap`` of [`simulate`][jaxlag.simulate]: every option of ``simulate`` (events,
     unilateral constraints, any diffrax solver, controller and adjoint), each member with its own
     solver loop inside one batched loop that runs until the slowest member has finished."""
 

@@ -1,4 +1,4 @@
-"""Checks of :func:`~jaxlag.fit`'s arguments, on the host before anything compiles: each raises
+"""Checks of [`fit`][jaxlag.fit]'s arguments, on the host before anything compiles: each raises
 an error that names what is wrong and how to fix it."""
 
 import jax
@@ -10,7 +10,7 @@ from .options import Bounded, Identity, Positive, Shooting
 
 
 def check_options(transforms, params, shooting) -> None:
-    """``transforms`` name fitted parameters, ``shooting`` is a :class:`Shooting`."""
+    """``transforms`` name fitted parameters, ``shooting`` is a `Shooting`."""
     unknown = set(transforms) - set(params)
     if unknown:
         raise ValueError(f"transforms name parameters that are not being fitted: {sorted(unknown)}.")
@@ -77,7 +77,7 @@ def check_starts(params, transforms) -> None:
 
 
 def check_optimizer(optimizer) -> bool:
-    """Whether ``optimizer`` is an optimistix least-squares solver that :func:`fit` can step
+    """Whether ``optimizer`` is an optimistix least-squares solver that `fit` can step
     (``True``) or an optax optimizer (``False``); a ``TypeError`` for anything else."""
     if isinstance(optimizer, optx.AbstractGaussNewton):
         return True

@@ -1,5 +1,5 @@
-"""The observed experiments: :class:`Experiment`, their checks and stacking, and the
-:class:`Data` the residuals compare against."""
+"""The observed experiments: `Experiment`, their checks and stacking, and the
+`Data` the residuals compare against."""
 
 from typing import Any
 
@@ -100,7 +100,7 @@ def _check_values(index: int, e: Experiment) -> None:
 
 
 def stack(experiments) -> Any:
-    """The experiments checked and stacked: an :class:`Experiment` of NumPy arrays with a leading
+    """The experiments checked and stacked: an `Experiment` of NumPy arrays with a leading
     axis E (``ts`` (E, T), ``observations`` (E, T, k), ``q0``, ``qd0`` (E, n)), not the
     ``ArrayLike`` fields a user's Experiment declares."""
     if isinstance(experiments, Experiment):

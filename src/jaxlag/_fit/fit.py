@@ -1,7 +1,7 @@
 r"""System identification: fit parameters (and initial states) to observed trajectories.
 
 The model of experiment ``e`` at save time ``t_i`` is ``y_e(t_i) = observe(q(t_i), q̇(t_i), t_i, args)``
-where ``(q, q̇)`` comes from :func:`~jaxlag.simulate` with ``args = {**fixed_args, **params}``.
+where ``(q, q̇)`` comes from [`simulate`][jaxlag.simulate] with ``args = {**fixed_args, **params}``.
 The fit minimizes the least-squares loss
 
     ℓ(θ) = ½ Σ_{e,i,k} r_{eik}²,     r = (y_model − y_observed) / σ
@@ -17,7 +17,7 @@ Two kinds of optimizer (``optimizer=``):
   residuals is built in forward mode (``diffrax.ForwardMode``), one tangent per parameter, which
   for a handful of parameters is far cheaper than reverse mode.
 * any ``optax.GradientTransformation``: gradient descent on ``ℓ`` with ``jax.value_and_grad``
-  through the simulation (the default :class:`~jaxlag.ForwardSensitivities`: forward
+  through the simulation (the default [`ForwardSensitivities`][jaxlag.ForwardSensitivities]: forward
   sensitivities for up to 10 free scalars, else ``diffrax.RecursiveCheckpointAdjoint``).
 
 Standard errors come from the Gauss–Newton approximation at the optimum: with the Jacobian
@@ -26,9 +26,9 @@ estimated from the residuals unless ``noise_std`` is given (then ``Cov = (JᵀJ)
 inverse is rank-revealing (an SVD of ``J`` with its columns scaled to unit norm, singular
 values below ``√ε · s_max`` dropped): a parameter along a direction the data cannot determine,
 or one that does not affect the residuals, gets an infinite standard error, its name in
-``FitResult.undetermined`` / ``FitResult.insensitive``, and a :class:`FitWarning` that says
+``FitResult.undetermined`` / ``FitResult.insensitive``, and a `FitWarning` that says
 which combination is determined (``only g/l is determined by the data``). The fit also warns
-when a parameter ends at a :class:`Bounded` bound, and, with ``noise_std`` given, when the
+when a parameter ends at a `Bounded` bound, and, with ``noise_std`` given, when the
 reduced χ² exceeds ``1 + 5 √(2/(N − p))`` (five standard deviations of the χ² distribution
 above its mean: a local minimum, or a model that does not describe the data).
 
@@ -96,15 +96,15 @@ def fit(
 
     **Arguments:**
 
-    - ``system``: the :class:`~jaxlag.System` (constraints, dissipation and forces included).
-    - ``params``: dict of free parameters with their starting values, or a :class:`MultiStart`
+    - ``system``: the [`System`][jaxlag.System] (constraints, dissipation and forces included).
+    - ``params``: dict of free parameters with their starting values, or a `MultiStart`
       of several starting points (the best fit is returned).
-    - ``experiments``: an :class:`Experiment` or a list of them (equal shapes; batched by vmap).
+    - ``experiments``: an `Experiment` or a list of them (equal shapes; batched by vmap).
     - ``observe``: ``observe(q, qd, [t], [args]) -> (k,)``, what was measured (default: ``q``).
       It matters: for a pendulum ``θ(t)`` depends only on ``g/l``, while the bob's Cartesian
       position ``l (sin θ, −cos θ)`` identifies ``g`` and ``l`` separately.
     - ``args``: fixed parameters, merged with ``params`` into the ``args`` the system sees.
-    - ``transforms``: per-parameter :class:`Positive` / :class:`Bounded` reparameterizations.
+    - ``transforms``: per-parameter `Positive` / `Bounded` reparameterizations.
     - ``optimizer``: an optimistix least-squares solver of the Gauss–Newton family (a subclass
       of ``optx.AbstractGaussNewton``: ``optx.LevenbergMarquardt`` (default, ``rtol = atol =
       1e-10``), ``optx.GaussNewton``, ``optx.Dogleg``, ``optx.IndirectLevenbergMarquardt``),
@@ -119,14 +119,14 @@ def fit(
       estimated (the same entries in every experiment); the others stay at the experiment's
       ``q0``/``qd0``, which are then known values. E.g. ``(jnp.array([True]),
       jnp.array([False]))``: θ0 free, θ̇0 known.
-    - ``shooting``: a :class:`Shooting` (segments, continuity weight, starting guesses of the
+    - ``shooting``: a `Shooting` (segments, continuity weight, starting guesses of the
       segment states, periodic coordinates); the default ``Shooting()`` is single shooting.
     - ``solver``, ``stepsize_controller``, ``dt0``, ``projection``, ``baumgarte``: passed to
-      :func:`~jaxlag.simulate`; ``max_solver_steps`` is its ``max_steps`` (the most integrator
+      [`simulate`][jaxlag.simulate]; ``max_solver_steps`` is its ``max_steps`` (the most integrator
       steps of one simulation).
     - ``progress``: show a tqdm progress bar (``pip install tqdm``).
 
-    Returns a :class:`FitResult`.
+    Returns a `FitResult`.
     """
     if isinstance(params, MultiStart):
         options = dict(
@@ -156,7 +156,7 @@ def fit(
 def _problem(
     system, params, experiments, observe, args, transforms, noise_std, estimate, shooting, simulation
 ) -> Problem:
-    """The prologue of :func:`fit`: its arguments checked, the :class:`Model` built, the data and
+    """The prologue of `fit`: its arguments checked, the `Model` built, the data and
     the starting free variables (unconstrained parameters, free segment states) ready."""
     batch = stack(experiments)
     check_options(transforms, params, shooting)
@@ -198,7 +198,7 @@ def _problem(
 
 
 def _multi_start(system, starts: MultiStart, experiments, options) -> FitResult:
-    """:func:`fit` from each start of ``starts`` in turn; the best result, with all of them."""
+    """`fit` from each start of ``starts`` in turn; the best result, with all of them."""
     count = next(iter(np.shape(v)[0] for v in starts.starts.values()))
     results, losses, error = [], [], None
     for k in range(count):
@@ -253,10 +253,10 @@ def least_squares_loss(
 ) -> Scalar:
     """The fit's loss ``½ Σ r²`` at physical ``params`` (single shooting, known initial states).
 
-    Differentiable with ``jax.grad`` (the default ``adjoint``, as in :func:`~jaxlag.simulate`)
+    Differentiable with ``jax.grad`` (the default ``adjoint``, as in [`simulate`][jaxlag.simulate])
     and ``jax.jacfwd`` (pass ``adjoint=diffrax.ForwardMode()``); useful to check gradients or to
     drive your own optimizer. ``solver``, ``stepsize_controller``, ``dt0``, ``adjoint``,
-    ``projection`` and ``baumgarte`` are passed to :func:`~jaxlag.simulate`, and
+    ``projection`` and ``baumgarte`` are passed to [`simulate`][jaxlag.simulate], and
     ``max_solver_steps`` as its ``max_steps``.
     """
     batch = stack(experiments)

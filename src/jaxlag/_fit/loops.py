@@ -1,11 +1,11 @@
-r"""The two optimisation loops of :func:`~jaxlag.fit`, one function each, minimizing
+r"""The two optimisation loops of [`fit`][jaxlag.fit], one function each, minimizing
 ``ℓ(y) = ½ |r(y)|²`` over the free variables ``y``.
 
-* :func:`least_squares_loop`: an optimistix Gauss–Newton-type solver (``optx.LevenbergMarquardt``,
+* `least_squares_loop`: an optimistix Gauss–Newton-type solver (``optx.LevenbergMarquardt``,
   ``optx.GaussNewton``, ``optx.Dogleg``, ``optx.IndirectLevenbergMarquardt``), stepped on the
   linearization ``r + J (y − y₀)`` at each trial point ``y₀`` (one compiled program gives ``r``
   and ``J``, a small one the step), through the solver's public ``init``/``step``/``terminate``.
-* :func:`optax_loop`: an ``optax.GradientTransformation`` on ``∇ℓ`` from ``jax.value_and_grad``
+* `optax_loop`: an ``optax.GradientTransformation`` on ``∇ℓ`` from ``jax.value_and_grad``
   through the simulation.
 """
 
@@ -43,7 +43,7 @@ def least_squares_loop(
     optimistix' Gauss–Newton step evaluates the residual function only at its trial point ``y₀``
     and linearizes it there; the linear model ``r + J (y − y₀)`` with ``r``, ``J`` taken at ``y₀``
     has the same value and Jacobian there, so the step is the one the solver takes on the
-    simulation itself. The step also returns the next trial point (see :func:`_ls_step`).
+    simulation itself. The step also returns the next trial point (see `_ls_step`).
     The loss after each step is ``½ |r|²`` at the point the solver returns: the trial point when
     it accepted it, else the last accepted point.
     """
@@ -126,7 +126,7 @@ def _ls_step(solver, free, state, linearization: Linearization):
     Returns the point the solver moved to, its state, the next trial point, whether to stop,
     whether the solver accepted the trial point (it then returns that point) and ``½ |r|²``
     there. The next trial point comes from the solver's public interface alone: a second step
-    from the new state on :func:`_probe` (discarded but for the point it returns) is accepted.
+    from the new state on `_probe` (discarded but for the point it returns) is accepted.
     """
     free, state, _ = solver.step(_linear_model, free, linearization, {}, state, frozenset())
     done, _ = solver.terminate(_linear_model, free, linearization, {}, state, frozenset())

@@ -1,7 +1,7 @@
 r"""The model: free variables -> weighted residuals, and their linearization.
 
 Experiment ``e`` observed at save time ``t_i`` is modelled as
-``y_e(t_i) = observe(q(t_i), q̇(t_i), t_i, args)`` with ``(q, q̇)`` from :func:`~jaxlag.simulate`
+``y_e(t_i) = observe(q(t_i), q̇(t_i), t_i, args)`` with ``(q, q̇)`` from [`simulate`][jaxlag.simulate]
 and ``args = {**fixed_args, **params}``; the residuals are ``r = (y_model − y_observed) / σ``
 (zero where the observation is NaN), followed with multiple shooting by the continuity residuals
 ``w (x_end(segment k) − x_start(segment k+1))``.
@@ -20,8 +20,8 @@ from jaxtyping import Array, Float
 from .. import _compile as compilation
 from .. import _diagnosis
 from .. import _errors as failures
-from .._errors import FailureCode
 from .._checks import Checks
+from .._errors import FailureCode
 from .._simulate import simulate
 from .._stabilization import (
     consistent_initial_state,
@@ -79,7 +79,7 @@ class Model(eqx.Module):
     initial_mask: tuple[tuple[int, ...], tuple[int, ...]] | None = eqx.field(static=True, default=None)
 
     def simulate(self, q0, qd0, ts, args, **kwargs):
-        """:func:`~jaxlag.simulate` of the system with the fit's simulation options."""
+        """[`simulate`][jaxlag.simulate] of the system with the fit's simulation options."""
         return simulate(
             self.system,
             q0,
@@ -101,7 +101,7 @@ class Model(eqx.Module):
         return {k: self.transforms.get(k, Identity()).to_physical(v) for k, v in params.items()}
 
     def unconstrained(self, physical):
-        """The flat ``u = to_unconstrained(θ)``, the inverse of :meth:`physical`."""
+        """The flat ``u = to_unconstrained(θ)``, the inverse of `physical`."""
         return self.spec.ravel(
             {k: self.transforms.get(k, Identity()).to_unconstrained(v) for k, v in physical.items()}
         )
@@ -182,7 +182,7 @@ class Model(eqx.Module):
         """The weighted residuals ``r = (y_model − y_observed) / σ`` (0 where the observation is
         NaN), then with multiple shooting ``w (x_end(k) − x_start(k+1))`` (angles of periodic
         coordinates wrapped into [−π, π)); with ``health=True`` also the checks of
-        :meth:`observations_of` (the host raises with :func:`raise_for_health`)."""
+        `observations_of` (the host raises with `raise_for_health`)."""
         params = self.physical(free["params"])
         states = self.states(free, fixed_states)
         y, q_end, qd_end, *checks = self.observations_of(params, data, states, adjoint, health)
@@ -210,7 +210,7 @@ class Model(eqx.Module):
 
 class Problem(eqx.Module):
     """What the loops and the statistics work on: the ``model``, the ``data``, the starting
-    free variables ``free`` and the fixed part of the segment states (see :meth:`Model.split`)."""
+    free variables ``free`` and the fixed part of the segment states (see `Model.split`)."""
 
     model: Model
     data: Data
@@ -259,9 +259,10 @@ def _linearize(model, free, data, fixed_states):
 
 
 def raise_for_health(model: Model, checks, flat_params, data: Data) -> None:
-    """Raise what the checks of :meth:`Model.observations_of` found (host side): an initial
+    """Raise what the checks of `Model.observations_of` found (host side): an initial
     state the projection could not bring onto the constraint manifold (``ValueError``, as
-    :func:`~jaxlag.consistent_initial_state`), or a failed simulation (``SimulationError``, with
+    [`consistent_initial_state`][jaxlag.consistent_initial_state]), or a failed simulation
+    (``SimulationError``, with
     the diagnosis at the parameters being tried)."""
     failure, residual = jax.device_get(checks)
     residual = np.asarray(residual)

@@ -1,6 +1,6 @@
-"""The options of :func:`~jaxlag.fit` as Modules: the reparameterizations of the parameters
-(``θ = to_physical(u)``, the optimizer works on ``u``), :class:`Shooting`, :class:`MultiStart`,
-and :class:`FitWarning`."""
+"""The options of [`fit`][jaxlag.fit] as Modules: the reparameterizations of the parameters
+(``θ = to_physical(u)``, the optimizer works on ``u``), `Shooting`, `MultiStart`,
+and `FitWarning`."""
 
 import operator
 
@@ -12,7 +12,6 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._custom_types import RealScalarLike
 from .._misc import is_concrete
-
 
 #: ``q`` or ``q̇`` of every shooting segment's starting state, one row per experiment and segment.
 SegmentStates = Float[Array, "experiments segments n"]
@@ -63,7 +62,7 @@ def _state_pair(states):
 
 
 class Shooting(eqx.Module):
-    """Multiple shooting, the ``shooting=`` option of :func:`fit`.
+    """Multiple shooting, the ``shooting=`` option of `fit`.
 
     - ``segments``: each experiment is split into this many segments (it must divide
       ``len(ts) − 1``; segments share their boundary save times), each starting from its own
@@ -104,12 +103,12 @@ class Shooting(eqx.Module):
 
 
 class MultiStart(eqx.Module):
-    """Several starting points for :func:`fit`: pass ``params=jl.MultiStart({"g": [5.0, 10.0,
+    """Several starting points for `fit`: pass ``params=jl.MultiStart({"g": [5.0, 10.0,
     20.0], "l": [0.5, 1.0, 2.0]})``. Every leaf has a leading axis of length K (the number of
     starts; a vector parameter of length n is given as (K, n)). The fits run one after the other
     (they share the compiled programs: only the first compiles); the result is the fit with the
     lowest final loss, with every start's final loss and parameters in
-    :attr:`FitResult.start_losses` / :attr:`FitResult.start_params`. A start whose fit fails
+    `FitResult.start_losses` / `FitResult.start_params`. A start whose fit fails
     (diverges or its simulation fails) gets loss ``inf``; only the best fit's warnings are issued.
     """
 
@@ -125,7 +124,7 @@ class MultiStart(eqx.Module):
 
 
 class FitWarning(UserWarning):
-    """What :func:`fit` warns about: parameters the data cannot determine or that do not affect
+    """What `fit` warns about: parameters the data cannot determine or that do not affect
     the residuals, a parameter ending at a bound, a fit far worse than the noise. Filter it with
     ``warnings.simplefilter("ignore", jl.FitWarning)``; the same texts are in
-    :attr:`FitResult.warnings`."""
+    `FitResult.warnings`."""

@@ -1,10 +1,10 @@
 r"""What a fit can vouch for, at the optimum: the covariance of the Gauss–Newton approximation,
-the directions the data cannot determine, the warnings, and :class:`FitResult`.
+the directions the data cannot determine, the warnings, and `FitResult`.
 
 With the Jacobian ``J = ∂r/∂θ`` in physical parameters (then the free segment states),
 ``Cov = σ̂² (JᵀJ)⁻¹``, where ``σ̂² = |r|²/(N − p)`` is estimated from the residuals unless
 ``noise_std`` is given (then ``Cov = (JᵀJ)⁻¹``). The inverse is rank-revealing
-(:func:`rank_revealing`).
+(`rank_revealing`).
 """
 
 import warnings
@@ -24,7 +24,7 @@ from .options import Bounded, FitWarning, SegmentStates
 
 
 class FitResult(eqx.Module):
-    """Outcome of :func:`fit`.
+    """Outcome of `fit`.
 
     ``params``: fitted parameters (physical values, same structure as the initial guess).
     ``standard_errors``: same structure; ``covariance``: (p, p) over ``jax.flatten_util.ravel_pytree``
@@ -32,7 +32,7 @@ class FitResult(eqx.Module):
     ``loss_history``: ``ℓ`` after each optimizer step (index 0 is the starting point).
     ``segment_states``: ``(q, qd)`` of shape (E, S, n), the state each shooting segment starts from.
 
-    What the fit can vouch for (all computed at the optimum, see :func:`fit`):
+    What the fit can vouch for (all computed at the optimum, see `fit`):
 
     - ``standard_errors``: ``inf`` for a parameter the data cannot determine (it has a
       component along a flat direction of the residuals) or that does not affect them.
@@ -41,12 +41,12 @@ class FitResult(eqx.Module):
       for those parameters.
     - ``undetermined``, ``insensitive``: the names of those parameters (``"k[1]"`` for an
       entry of an array parameter; estimated initial states as ``"q0[0] of experiment 0"``).
-    - ``at_bound``: parameters that end within ``1e-6 (upper − lower)`` of a :class:`Bounded`
+    - ``at_bound``: parameters that end within ``1e-6 (upper − lower)`` of a `Bounded`
       transform's bound.
     - ``residual_std``: the standard deviation of the residuals, ``√(Σ r²/(N − p))`` in the
       units of the observations. ``reduced_chi2``: ``Σ (r/σ)²/(N − p)`` when ``noise_std`` is
       given (else None); about ``1 ± √(2/(N − p))`` for a good fit.
-    - ``warnings``: the texts of the :class:`FitWarning` s the fit issued.
+    - ``warnings``: the texts of the `FitWarning` s the fit issued.
     - ``initial_state_errors``: standard errors of the estimated initial states (same
       structure as ``initial_states``), None when they are not estimated.
     - ``converged``: the optimizer's stopping criterion was met; it says nothing about the
@@ -74,7 +74,7 @@ class FitResult(eqx.Module):
 
 
 def fit_result(problem: Problem, search: Search, noise_std: float | None) -> FitResult:
-    """The :class:`FitResult` at the end of ``search``, its :class:`FitWarning` s issued.
+    """The `FitResult` at the end of ``search``, its `FitWarning` s issued.
 
     ``χ² = |r|²`` over ``N`` finite observations and ``p`` free scalars (``dof = N − p``):
     ``σ̂² = χ²/dof``, ``residual_std = σ̂`` without ``noise_std``; with it, ``σ̂² = 1``,
@@ -166,7 +166,7 @@ def _free_variables_jacobian(model, x, free_template):
 
 
 def _at_bound(transforms, fitted) -> tuple[tuple[str, ...], list[str]]:
-    """The parameters within ``1e-6 (upper − lower)`` of a :class:`Bounded` bound, and the
+    """The parameters within ``1e-6 (upper − lower)`` of a `Bounded` bound, and the
     warnings that say so."""
     at_bound, messages = [], []
     for name, transform in transforms.items():

@@ -2,7 +2,7 @@ r"""Mass matrices that do not depend on the state: found at trace time, inverted
 
 For particles and rigid bodies in Cartesian coordinates ``M = ∂²L/∂q̇²`` is a constant. Forming it
 by n forward-mode products and factoring it at every evaluation of the right-hand side is then
-wasted work. Before integrating, :func:`with_constant_mass` traces ``M(q, q̇, t, args)`` to a jaxpr
+wasted work. Before integrating, `with_constant_mass` traces ``M(q, q̇, t, args)`` to a jaxpr
 (``jax.make_jaxpr``) and follows the data dependencies from its inputs to its output:
 
 * ``M`` depends on none of ``q``, ``q̇``, ``t``, the arrays in ``args`` or any traced value the
@@ -13,7 +13,7 @@ wasted work. Before integrating, :func:`with_constant_mass` traces ``M(q, q̇, t
   inverted once per integration, outside the solver loop, and stays differentiable in ``args``.
 * otherwise (``M(q)`` of generalized coordinates) nothing changes.
 
-The analysis (:mod:`jaxlag._mechanics.dependence`) is conservative: a false "depends" only loses the
+The analysis (`jaxlag._mechanics.dependence`) is conservative: a false "depends" only loses the
 speed-up, it never changes a result.
 """
 
@@ -29,8 +29,8 @@ import numpy as np
 from .. import _compile as compilation
 from .._tolerances import MASS_RCOND
 from .dependence import may_depend
-from .linalg import solve_spd
 from .lagrangian import mass_along, mass_matrix
+from .linalg import solve_spd
 
 
 class ConstantMass(eqx.Module):
@@ -141,7 +141,7 @@ def constant_mass(system, q, qd, t, args) -> ConstantMass | None:
 
 
 def with_constant_mass(system, q, qd, t, args):
-    """``system`` carrying its :class:`ConstantMass` when ``M`` does not depend on the state."""
+    """``system`` carrying its `ConstantMass` when ``M`` does not depend on the state."""
     if system.constant_mass is not None:
         return system
     found = constant_mass(system, q, qd, t, args)

@@ -14,7 +14,7 @@ friction coefficient ``μ_j`` the tangential generalized force is ``T_jᵀ λ_t`
   ``T q̈ = −γ_t`` (``γ_t = d/ds τ̇(q + s q̇, t + s)`` at 0, one nested ``jvp``, as for ``f``), with
   its multiplier ``λ_t``; it holds while ``|λ_t| ≤ μ λ_N``.
 
-The switches are events of the segmented integration (:mod:`jaxlag._events`): ``s v_t`` reaching
+The switches are events of the segmented integration (`jaxlag._events`): ``s v_t`` reaching
 0 (slip ends: the contact sticks if it can, otherwise slips the other way, ``s = −sign λ_t``)
 and ``μ λ_N − |λ_t|`` reaching 0 (stick ends: slip with ``s = −sign λ_t``, so that friction
 opposes the impending motion). A contact whose normal row does not act has no friction.
@@ -64,16 +64,17 @@ class Coulomb(eqx.Module):
 
     The tangential generalized force is ``Tᵀλ_t``: while slipping with ``s = sign v_t``,
     ``λ_t = −μ s λ_N``; while sticking, ``λ_t`` is the multiplier of the added row ``v_t = 0``,
-    held while ``|λ_t| ≤ μ λ_N``. :func:`~jaxlag.simulate` integrates in segments with the
+    held while ``|λ_t| ≤ μ λ_N``. [`simulate`][jaxlag.simulate] integrates in segments with the
     mode of each contact fixed and switches at the events ``v_t → 0`` ("stick", or a reversed
     "slip" if ``|λ_t| > μ λ_N`` there) and ``|λ_t| → μ λ_N`` ("slip", in the direction the
-    net force drives: ``s = −sign λ_t``); :class:`~jaxlag.EventLog` records them, and
+    net force drives: ``s = −sign λ_t``); [`EventLog`][jaxlag.EventLog] records them, and
     ``traj.friction_forces`` / ``traj.friction_modes`` give ``λ_t`` and the mode. The
-    equations are in :mod:`jaxlag._mechanics.friction`.
+    equations are in `jaxlag._mechanics.friction`.
 
-    Friction needs the mode, so it lives in :func:`~jaxlag.simulate` (and ``simulate_batch``
-    with ``jl.Vmap()``); the state methods of :class:`~jaxlag.System` (``accelerations``,
-    ``multipliers``) and :func:`jaxlag.analysis.linearize` give the frictionless equations.
+    Friction needs the mode, so it lives in [`simulate`][jaxlag.simulate] (and ``simulate_batch``
+    with ``jl.Vmap()``); the state methods of [`System`][jaxlag.System] (``accelerations``,
+    ``multipliers``) and [`jaxlag.analysis.linearize`][jaxlag.analysis.linearize] give the frictionless
+    equations.
     Impacts are frictionless.
 
     **Step size while sticking.** A stuck body may not move at all: the step-size controller
@@ -113,7 +114,7 @@ class Coulomb(eqx.Module):
 
 
 def as_friction(friction: Coulomb | Sequence[Coulomb] | None) -> tuple[Coulomb, ...]:
-    """``System``'s ``friction=``: one :class:`Coulomb`, a sequence of them, or ``None``."""
+    """``System``'s ``friction=``: one `Coulomb`, a sequence of them, or ``None``."""
     if friction is None:
         return ()
     elements = (friction,) if isinstance(friction, Coulomb) else tuple(friction)
@@ -164,7 +165,7 @@ def solve_with_modes(system, q, qd, t, args, baumgarte=None, active=None, modes=
 
     ``modes`` (k,): 0 stick, ``±1`` slip with ``sign v_t = ±1``; a contact whose normal row is
     inactive (``active``) has no friction (``λ_t = 0``). Without friction (or ``modes`` None)
-    this is :func:`~jaxlag._mechanics.kkt.accelerations_and_multipliers` with ``λ_t`` empty or 0.
+    this is `accelerations_and_multipliers` with ``λ_t`` empty or 0.
     """
     k = friction_count(system)
     if k == 0 or modes is None:

@@ -1,9 +1,9 @@
 r"""The friction modes of the segmented integration, as an object the segment loop calls.
 
-Each :class:`~jaxlag.Coulomb` contact is in one mode per segment: 0 (stick) or ``s = ±1`` (slip
-with ``sign v_t = s``); :mod:`jaxlag._mechanics.friction` gives the dynamics in a mode and the
+Each [`Coulomb`][jaxlag.Coulomb] contact is in one mode per segment: 0 (stick) or ``s = ±1`` (slip
+with ``sign v_t = s``); `jaxlag._mechanics.friction` gives the dynamics in a mode and the
 switch quantities. This module says how the modes start, what ends a segment and how the modes
-change at the end of one. :class:`NoFriction` is the "does nothing" law of a system without
+change at the end of one. `NoFriction` is the "does nothing" law of a system without
 Coulomb contacts (as diffrax's ``ConstantStepSize`` is its "no adaptivity" controller): the
 loop calls the same methods and never asks whether friction is present.
 """
@@ -77,7 +77,7 @@ def _friction_value(system, y, t, args, active, modes):
 
 
 class CoulombModes(AbstractFrictionModes):
-    """The stick–slip modes of the system's :class:`~jaxlag.Coulomb` contacts."""
+    """The stick–slip modes of the system's [`Coulomb`][jaxlag.Coulomb] contacts."""
 
     contacts: tuple[int, ...] = eqx.field(static=True)  # the normal row of each contact
 
@@ -132,7 +132,7 @@ class CoulombModes(AbstractFrictionModes):
 
 
 def friction_modes_for(system) -> AbstractFrictionModes:
-    """:class:`CoulombModes` of the system's contacts, or :class:`NoFriction`."""
+    """`CoulombModes` of the system's contacts, or `NoFriction`."""
     if not system.friction:
         return NoFriction()
     return CoulombModes(contacts=tuple(e.contact for e in system.friction))

@@ -11,7 +11,7 @@ and targets (``ḟ = J q̇ + ∂f/∂t``, the rate of a gap; ``g = A q̇ + b``)
 * ``ḟ_i⁺ = 0`` on the rows that act already (bilateral ones and unilateral ones in persistent
   contact), ``g⁺ = 0`` on the velocity constraints.
 
-It is the KKT system of :func:`jaxlag._mechanics.kkt.solve_kkt` with ``F = 0``: ``Δq̇`` and ``Λ``
+It is the KKT system of `jaxlag._mechanics.kkt.solve_kkt` with ``F = 0``: ``Δq̇`` and ``Λ``
 come out of one range-space solve ``(G M⁻¹ Gᵀ) Λ = v* − G q̇⁻``. ``Λ`` has the units of
 momentum and the sign of ``λ`` (``Λ_i ≥ 0`` pushes on a unilateral row ``f_i ≥ 0``).
 
@@ -59,7 +59,7 @@ class Unilateral(eqx.Module):
     ``System(..., unilateral=jl.Unilateral(indices, restitution=e))``.
 
     - ``indices``: which holonomic constraints are one-sided (an int or a sequence of ints;
-      ``unilateral=indices`` on :class:`~jaxlag.System` is ``Unilateral(indices)``, plastic).
+      ``unilateral=indices`` on [`System`][jaxlag.System] is ``Unilateral(indices)``, plastic).
     - ``restitution``: Newton's coefficient ``e ∈ [0, 1]``, one value for all of them or one per
       index (in the order of ``indices``). At an impact the approach rate ``ḟ_i⁻ < 0`` becomes
       ``ḟ_i⁺ = −e_i ḟ_i⁻``; ``e = 0`` (the default) is perfectly plastic (the contact engages),
@@ -67,7 +67,7 @@ class Unilateral(eqx.Module):
       through it (build the system inside the function you transform).
 
     **The impact law.** At an impact the velocities jump by an impulse ``Λ`` on the constraint
-    rows, solved through the KKT structure (:func:`~jaxlag.simulate`'s ``M q̈ = F + Jᵀλ + Aᵀμ``
+    rows, solved through the KKT structure ([`simulate`][jaxlag.simulate]'s ``M q̈ = F + Jᵀλ + Aᵀμ``
     with ``F = 0`` and velocities for accelerations)::
 
         M (q̇⁺ − q̇⁻) = J_Sᵀ Λ (+ Aᵀ·),    ḟ_i⁺ = −e_i ḟ_i⁻ (impacting),  ḟ_i⁺ = 0 (acting),  g⁺ = 0
@@ -84,10 +84,10 @@ class Unilateral(eqx.Module):
 
     **Zeno.** A body pressed onto the constraint (normal acceleration ``f̈_i < 0`` with the
     rows acting before the impact) would fly ``τ = 2 e_i |ḟ_i⁻| / |f̈_i|`` after the rebound;
-    below :class:`~jaxlag.Events`' ``zeno_time`` (default ``10⁻³ (t1 − t0)``) the impact is
+    below [`Events`][jaxlag.Events]' ``zeno_time`` (default ``10⁻³ (t1 − t0)``) the impact is
     plastic and the contact persists: a bouncing ball comes to rest and the multiplier carries
     its weight. The impulses are recorded in ``traj.events.impulses``
-    (:class:`~jaxlag.EventLog`).
+    ([`EventLog`][jaxlag.EventLog]).
     """
 
     indices: tuple[int, ...] = eqx.field(static=True)
@@ -133,7 +133,7 @@ class Unilateral(eqx.Module):
 
 
 def as_unilateral(unilateral: int | Sequence[int] | Unilateral) -> Unilateral:
-    """``System``'s ``unilateral=``: a :class:`Unilateral`, or indices (plastic)."""
+    """``System``'s ``unilateral=``: a `Unilateral`, or indices (plastic)."""
     if isinstance(unilateral, Unilateral):
         return unilateral
     if isinstance(unilateral, (bool, np.bool_)):

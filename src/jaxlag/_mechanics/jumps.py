@@ -1,15 +1,15 @@
 r"""The jump of the state at the end of a segment, as an object the segment loop calls.
 
 At a release, a contact or a reset the state jumps onto the constraints acting after it:
-an impact on the rows that touch while approaching (Newton's law, :mod:`jaxlag._mechanics.impacts`),
+an impact on the rows that touch while approaching (Newton's law, `jaxlag._mechanics.impacts`),
 then the mass-weighted projection of the positions onto the rows that touch (acting or rebounding
 from ``f = 0``) and of the velocities onto the acting ones (a rebound keeps ``ḟ⁺ = e|ḟ⁻|``). A
 newly engaged constraint that would have to pull separates again. The impulse on each holonomic
 row, ``M(q̇⁺ − q̇⁻) = JᵀΛ (+ Aᵀ·)``, is recorded with the sign of ``λ``.
 
-Three laws, chosen once per run by :func:`jump_law_for`: :class:`ImpactJump` (the system has
-holonomic rows), :class:`VelocityReprojection` (no holonomic row, velocity constraints and a
-reset: ``g = 0`` again) and :class:`NoJump` (nothing to project: the state is left as it is).
+Three laws, chosen once per run by `jump_law_for`: `ImpactJump` (the system has
+holonomic rows), `VelocityReprojection` (no holonomic row, velocity constraints and a
+reset: ``g = 0`` again) and `NoJump` (nothing to project: the state is left as it is).
 """
 
 import abc
@@ -145,8 +145,8 @@ class ImpactJump(AbstractJumpLaw):
 
 
 def jump_law_for(system, m_h: int, resets: AbstractResets) -> AbstractJumpLaw:
-    """The jump law of a run: :class:`ImpactJump` with holonomic rows, else
-    :class:`VelocityReprojection` for resets under velocity constraints, else :class:`NoJump`."""
+    """The jump law of a run: `ImpactJump` with holonomic rows, else
+    `VelocityReprojection` for resets under velocity constraints, else `NoJump`."""
     if m_h:
         return ImpactJump()
     if system.velocity_constraints is not None and not isinstance(resets, NoResets):

@@ -14,20 +14,21 @@ matrix:
     q̈ = M⁻¹F + M⁻¹Gᵀ Λ.
 
 When the constraints are redundant ``S`` is singular; with ``least_squares=True`` on the
-:class:`~jaxlag.System` ``Λ = S⁺(c − G M⁻¹F)`` is the minimum-norm choice, and ``q̈`` is still
+[`System`][jaxlag.System] ``Λ = S⁺(c − G M⁻¹F)`` is the minimum-norm choice, and ``q̈`` is still
 unique when the redundant constraints are consistent.
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import jax.numpy as jnp
 
 from .constraints import constraint_rows
+from .lagrangian import mass_solver_and_forces
 from .linalg import solve_psd_least_squares, solve_spd
 from .mass_solve import AbstractMassSolve, CheckedCholesky, Factorization, nan_unless
-from .lagrangian import mass_solver_and_forces
 
 
 def deactivate(rows, rhs, active):
@@ -56,10 +57,10 @@ def solve_kkt(
     """Solve ``M q̈ = F + Gᵀ Λ``, ``G q̈ = c``; return ``(q̈, Λ)``.
 
     ``mass`` is ``M`` (n, n), factored here (a division if ``diagonal_mass``), or a function
-    ``b ↦ M⁻¹ b`` for vectors and matrices (a :class:`~jaxlag._mechanics.mass_solve.Factorization`,
-    :func:`jaxlag._mechanics.linalg.spd_solver`'s result); ``active`` (m,) optionally switches
+    ``b ↦ M⁻¹ b`` for vectors and matrices (a `Factorization`,
+    `jaxlag._mechanics.linalg.spd_solver`'s result); ``active`` (m,) optionally switches
     constraints off (their multipliers are zero). ``mass_solve`` factors ``M`` and the Schur
-    complement: with :class:`~jaxlag.RobustSolve` a failed ``M`` or Schur complement makes the
+    complement: with [`RobustSolve`][jaxlag.RobustSolve] a failed ``M`` or Schur complement makes the
     whole result NaN, computed from finite intermediate values (zero gradient, never NaN).
     """
     factored = mass if isinstance(mass, Factorization) else None

@@ -67,7 +67,7 @@ def lagrangian_terms(system, q, qd, t, args):
     terms; n ``jvp``s of ``p`` along the unit directions in ``q̇`` alone give ``M``, with the ``q``
     tangents symbolically zero, so what depends on ``q`` only (an explicit ``M(q)`` in
     ``½q̇ᵀM(q)q̇``) is not pushed forward n times. A system carrying a
-    :class:`~jaxlag._mechanics.constant_mass.ConstantMass` skips those n products.
+    `ConstantMass` skips those n products.
     """
     t = as_time(t, q)
     dL_dq, p, dp_motion = _velocity_terms(system, q, qd, t, args)

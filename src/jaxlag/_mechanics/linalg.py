@@ -9,7 +9,8 @@ LAPACK's Cholesky (``jax.scipy.linalg.cho_factor``/``cho_solve``). Both are diff
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
@@ -89,7 +90,7 @@ def spd_solver(a, diagonal: bool = False):
 
 
 def solve_spd(a, b, diagonal: bool = False):
-    """Solve ``a x = b`` for a symmetric positive definite ``a`` (see :func:`spd_solver`)."""
+    """Solve ``a x = b`` for a symmetric positive definite ``a`` (see `spd_solver`)."""
     return spd_solver(a, diagonal)(b)
 
 

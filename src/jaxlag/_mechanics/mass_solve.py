@@ -1,15 +1,15 @@
 r"""How ``M q̈ = F + Gᵀ Λ`` is solved: checked for hand-written mechanics, robust for learned ones.
 
-A :class:`~jaxlag.System` holds one of these options as ``mass_solve``. Both factor the mass
+A [`System`][jaxlag.System] holds one of these options as ``mass_solve``. Both factor the mass
 matrix ``M = ∂²L/∂q̇²`` (and the Schur complement ``S = G M⁻¹ Gᵀ`` of the constraint rows
 ``G = [J; A]``) by a Cholesky factorization ``M = L Lᵀ``; they differ in what a matrix that is
 not positive definite does:
 
-* :class:`CheckedCholesky` (the default): it is an error. ``System`` methods and
-  :func:`~jaxlag.simulate` check the state and raise with the numbers (eagerly) or a static
+* `CheckedCholesky` (the default): it is an error. ``System`` methods and
+  [`simulate`][jaxlag.simulate] check the state and raise with the numbers (eagerly) or a static
   message (compiled, ``eqx.error_if``). Right for hand-written mechanics, where an indefinite
   ``M`` is a bug.
-* :class:`RobustSolve`: it is a value. The state *fails*: accelerations and multipliers are NaN
+* `RobustSolve`: it is a value. The state *fails*: accelerations and multipliers are NaN
   for it, nothing is raised, and under ``jax.vmap`` the other members are unaffected, their
   gradients included. Right for learned Lagrangians (an MLP ``L(q, q̇)`` whose Hessian in ``q̇``
   is indefinite at initialization).
@@ -62,10 +62,10 @@ def nan_unless(ok, x):
 
 
 class AbstractMassSolve(eqx.Module):
-    """How a :class:`~jaxlag.System` solves ``M q̈ = F + Jᵀλ + Aᵀμ`` (``System(mass_solve=...)``).
+    """How a [`System`][jaxlag.System] solves ``M q̈ = F + Jᵀλ + Aᵀμ`` (``System(mass_solve=...)``).
 
-    Subclasses: :class:`~jaxlag.CheckedCholesky` (default; an indefinite or singular ``M`` is an
-    error) and :class:`~jaxlag.RobustSolve` (it gives NaN for that state, for learned
+    Subclasses: [`CheckedCholesky`][jaxlag.CheckedCholesky] (default; an indefinite or singular ``M`` is an
+    error) and [`RobustSolve`][jaxlag.RobustSolve] (it gives NaN for that state, for learned
     Lagrangians).
     """
 
@@ -84,8 +84,8 @@ class CheckedCholesky(AbstractMassSolve):
     complement ``G M⁻¹ Gᵀ``. A state where ``M`` is not positive definite (or the constraints
     are redundant) is an error: ``System`` methods raise ``ValueError`` with the eigenvalues
     (concrete inputs) or a static message from inside a compiled program (``eqx.error_if``),
-    and :func:`~jaxlag.simulate` checks the initial state. The compiled test is the
-    factorization's own pivots (see :class:`RobustSolve` for the criterion), the eager one the
+    and [`simulate`][jaxlag.simulate] checks the initial state. The compiled test is the
+    factorization's own pivots (see `RobustSolve` for the criterion), the eager one the
     eigenvalues: ``λ_min > 10⁻¹² λ_max`` in float64.
     """
 
@@ -133,13 +133,13 @@ class RobustSolve(AbstractMassSolve):
     factorization continues with the failed pivots replaced by 1 (finite, meaningless values),
     and only the result is replaced by NaN, so the gradient of a failed member is exactly zero
     and never NaN (the other members' gradients are not poisoned). Where every pivot passes the
-    result is the ordinary Cholesky solve, equal to :class:`CheckedCholesky`'s to rounding.
+    result is the ordinary Cholesky solve, equal to `CheckedCholesky`'s to rounding.
 
     Failures are counted without a host callback: ``failed = jnp.isnan(qdd).any(-1)`` for
     accelerations ``qdd`` of shape (B, n), ``failed.sum()`` members failed; mask before any
     arithmetic, e.g. ``jnp.where(failed[:, None], 0.0, qdd)``, so a loss stays finite and its
-    gradient is that of the other members. :func:`~jaxlag.simulate` of such a state ends with
-    ``FailureCode.NONFINITE`` (per member in :func:`~jaxlag.simulate_batch`; with
+    gradient is that of the other members. [`simulate`][jaxlag.simulate] of such a state ends with
+    ``FailureCode.NONFINITE`` (per member in [`simulate_batch`][jaxlag.simulate_batch]; with
     ``throw=False``) instead of an initial-state error; the other checks (non-finite state or
     parameters, constraint residuals) still raise.
     """
@@ -163,7 +163,7 @@ class RobustSolve(AbstractMassSolve):
 
 
 def robust_factor(matrix, rtol: float, diagonal: bool = False) -> Factorization:
-    """The :class:`RobustSolve` factorization of ``matrix`` with relative pivot floor ``rtol``."""
+    """The `RobustSolve` factorization of ``matrix`` with relative pivot floor ``rtol``."""
     n = matrix.shape[0]
     finite = jnp.all(jnp.isfinite(matrix))
     safe = jnp.where(jnp.isfinite(matrix), matrix, 0.0)
@@ -262,7 +262,7 @@ def clipped_cholesky(a, floor) -> tuple[Callable[[Any], Any], Bool[Array, ""]]:
 
 
 def pivots_pass(a, rtol: float) -> Bool[Array, ""]:
-    """Whether the symmetric ``a`` passes the :class:`RobustSolve` test (finite, every Cholesky
+    """Whether the symmetric ``a`` passes the `RobustSolve` test (finite, every Cholesky
     pivot above ``rtol · max_i |a_ii|``, ``max_i a_ii · trace(a⁻¹) ≤ n/rtol``): the compiled
     definiteness check, without eigenvalues."""
     if a.shape[0] == 0:

@@ -1,8 +1,8 @@
 r"""The state resets of user events, as an object the segment loop calls.
 
-A non-terminal :class:`~jaxlag.Event` with a ``reset`` maps the state at each recorded crossing,
+A non-terminal [`Event`][jaxlag.Event] with a ``reset`` maps the state at each recorded crossing,
 ``(q⁺, q̇⁺) = reset(q, q̇, [t], [args])``; the segment loop then projects it onto the constraints
-acting after it (:mod:`jaxlag._mechanics.jumps`). :class:`NoResets` is the "does nothing"
+acting after it (`jaxlag._mechanics.jumps`). `NoResets` is the "does nothing"
 implementation for runs whose events have no reset: the loop calls the same methods.
 """
 
@@ -123,7 +123,7 @@ class EventResets(AbstractResets):
 
 
 def resets_for(resets: tuple[UserFunction | None, ...]) -> AbstractResets:
-    """:class:`EventResets` if any condition has a reset, else :class:`NoResets`."""
+    """`EventResets` if any condition has a reset, else `NoResets`."""
     if all(reset is None for reset in resets):
         return NoResets()
     return EventResets(resets=resets)

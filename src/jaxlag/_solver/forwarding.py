@@ -1,8 +1,8 @@
 """``ForwardingSolver``: the base of jaxlag's diffrax solver wrappers.
 
 A wrapper changes one thing about the solver it holds (``step`` for
-:class:`~jaxlag._stabilization.ProjectedSolver` and :class:`~jaxlag._solver.step_once.StepOnce`, the state
-for :class:`~jaxlag._solver.tangent_solve.TangentSolver`) and forwards the rest of diffrax's solver
+`ProjectedSolver` and `StepOnce`, the state
+for `TangentSolver`) and forwards the rest of diffrax's solver
 interface to it: term structure, interpolation, orders, ``init``, ``step``, ``func`` and the
 Runge–Kutta ``scan_kind`` (which diffrax's adjoints set on the solver they are handed; the
 property returns the wrapped solver's field, so their ``eqx.tree_at`` reaches it). Whether

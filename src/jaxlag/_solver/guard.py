@@ -1,6 +1,6 @@
 """A step-size controller guard: stop a solve at a non-finite step of round-off size.
 
-Wraps the user's controller (:func:`guard`); the guard's state records the time reached, the last
+Wraps the user's controller (`guard`); the guard's state records the time reached, the last
 step size and the last accepted state, which the failure record (``jaxlag._errors``) reports.
 """
 
@@ -19,7 +19,7 @@ _ULPS = 64  # a step at most this many ulps of the time scale is at round-off
 
 
 class GuardState(eqx.Module):
-    """What :class:`FiniteStepGuard` carries from step to step (and returns at the end)."""
+    """What `FiniteStepGuard` carries from step to step (and returns at the end)."""
 
     inner: Any
     t: Any  # time reached: end of the last accepted step

@@ -4,7 +4,7 @@
 ``eqx.filter_eval_shape`` (to find which parts of its state stay static, a second time when the
 first finds some traced) and once for the loop itself. Each trace runs the solver's step in
 Python, and with it the equations of motion (a KKT solve) at every Runge–Kutta stage and the
-projection. :class:`StepOnce` wraps the solver so that its ``step`` is an ``equinox.filter_jit``
+projection. `StepOnce` wraps the solver so that its ``step`` is an ``equinox.filter_jit``
 function: the first trace records it, the other two are served from JAX's tracing cache (same
 function, same static parts, same abstract arguments). The program is unchanged (XLA inlines
 the call); only tracing time is saved.

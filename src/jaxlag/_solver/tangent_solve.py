@@ -15,19 +15,19 @@ with ``Φ`` the solver step (including whatever it wraps, e.g. jaxlag's projecti
 constraint manifold) and the same ``tₙ``. This module runs that recursion inside one ordinary
 ``diffrax.diffeqsolve`` of the augmented state ``(y, Y)``, ``Y`` holding k tangents:
 
-* :class:`TangentTerm` is the variational vector field ``(f, ∂f/∂y·Y + ∂f/∂θ·δ)`` (``jax.jvp``
+* `TangentTerm` is the variational vector field ``(f, ∂f/∂y·Y + ∂f/∂θ·δ)`` (``jax.jvp``
   of the equations of motion along the k directions, ``jax.vmap`` over the tangents only: the
   primal is computed once). An explicit Runge–Kutta step of it is exactly the ``jvp`` of the
   step of ``f`` (each stage is a vector-field evaluation, the rest is linear in the stages), and
   the solver's dense output, linear in its stages too, interpolates ``Y`` with ``y``;
-* :class:`TangentSolver` steps it with the wrapped solver; a projected solver's projection of
+* `TangentSolver` steps it with the wrapped solver; a projected solver's projection of
   ``y`` after the step is pushed forward along the k tangents (``push``);
-* :class:`PrimalStepSizes` wraps the step-size controller so that it sees the primal state and
+* `PrimalStepSizes` wraps the step-size controller so that it sees the primal state and
   error estimate only: the steps are exactly those of the primal run.
 
 The parameters ``θ`` enter through ``args`` and the term's arrays (and the projected solver's
-system); their tangents along the k directions are fields of :class:`TangentTerm` and
-:class:`TangentSolver` (k leading). Times are not differentiated here. The gradient equals
+system); their tangents along the k directions are fields of `TangentTerm` and
+`TangentSolver` (k leading). Times are not differentiated here. The gradient equals
 ``jax.vmap(jax.jvp(...))`` of the solve to rounding (≤ 5e-16 relative measured on the README
 example; tests compare with diffrax's ``RecursiveCheckpointAdjoint``).
 
@@ -45,8 +45,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .forwarding import ForwardingAdaptiveController, ForwardingSolver
 from .._stabilization import ProjectedSolver
+from .forwarding import ForwardingAdaptiveController, ForwardingSolver
 
 
 def partition_inexact(tree):
@@ -79,7 +79,7 @@ class TangentTerm(diffrax.AbstractTerm):
     """The variational term of ``term``: ``vf(t, (y, Y), args) = (f, ∂f/∂y·Y + ∂f/∂θ·δ)`` along
     k directions, ``term_tangent`` (the derivatives of the inexact leaves of ``term``, k leading,
     structured as ``eqx.partition(term, eqx.is_inexact_array)[0]``) and ``args_tangent``
-    (likewise for ``args``) holding ``∂θ·δ``. :class:`TangentSolver` steps it."""
+    (likewise for ``args``) holding ``∂θ·δ``. `TangentSolver` steps it."""
 
     term: diffrax.AbstractTerm
     term_tangent: Any
@@ -100,7 +100,7 @@ class TangentTerm(diffrax.AbstractTerm):
 
 @eqx.filter_jit
 def _variational_field(tangent_term, t, y, args):
-    """:meth:`TangentTerm.vf`."""
+    """`TangentTerm.vf`."""
     y, tangents_y = y
     term_dyn, term_static = partition_inexact(tangent_term.term)
     args_dyn, args_static = partition_inexact(args)
@@ -116,7 +116,7 @@ def _variational_field(tangent_term, t, y, args):
 
 
 def _unwrap(terms):
-    """``(tangent_term, rewrap)``: the :class:`TangentTerm` inside diffrax's direction wrapper
+    """``(tangent_term, rewrap)``: the `TangentTerm` inside diffrax's direction wrapper
     and how to put another term in its place."""
     if isinstance(terms, TangentTerm):
         return terms, lambda term: term
@@ -127,17 +127,17 @@ def _unwrap(terms):
 
 
 class TangentSolver(ForwardingSolver):
-    """``solver`` stepping a :class:`TangentTerm` on ``(y, Y)``, ``Y`` (k leading) the
+    """``solver`` stepping a `TangentTerm` on ``(y, Y)``, ``Y`` (k leading) the
     derivatives of ``y`` along k directions of the parameters.
 
     An explicit Runge–Kutta step of the variational equations is the ``jvp`` of the step of
     the equations (every stage is a vector-field evaluation and the rest is linear), so the
     wrapped solver steps the augmented state as it is, its dense output interpolates both. A
-    :class:`~jaxlag._stabilization.ProjectedSolver` projects ``y`` after the step and pushes
+    `ProjectedSolver` projects ``y`` after the step and pushes
     ``Y`` through the projection (``push``), with the derivatives of its system's arrays,
     ``projection_tangent`` (structured as ``eqx.partition(solver.system, is_inexact)[0]``, k
     leading), and of ``args`` (the term's). The error estimate includes the tangents: pair the
-    solver with :class:`PrimalStepSizes`, which looks at the state's only."""
+    solver with `PrimalStepSizes`, which looks at the state's only."""
 
     solver: diffrax.AbstractSolver
     projection_tangent: Any = None
@@ -159,7 +159,7 @@ class TangentSolver(ForwardingSolver):
 
 @eqx.filter_jit
 def _tangent_step(stepper, terms, t0, t1, y0, args, solver_state, made_jump):
-    """:meth:`TangentSolver.step`."""
+    """`TangentSolver.step`."""
     solver = stepper.solver
     if type(solver) is not ProjectedSolver:
         return solver.step(terms, t0, t1, y0, args, solver_state, made_jump)
@@ -228,7 +228,7 @@ class PrimalAdaptiveStepSizes(ForwardingAdaptiveController):
 
 
 def primal_step_sizes(controller):
-    """``controller`` restricted to the primal state (see :class:`PrimalAdaptiveStepSizes`)."""
+    """``controller`` restricted to the primal state (see `PrimalAdaptiveStepSizes`)."""
     if isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
         return PrimalAdaptiveStepSizes(controller)  # pyright: ignore[reportCallIssue]
     return PrimalStepSizes(controller)

@@ -6,10 +6,10 @@ diffrax marks the solvers that return one by ``diffrax.AbstractAdaptiveSolver`` 
 ``PIDController`` raises at trace time when a step returns no error, ``y_error is None``:
 ``diffrax.Euler``, ``SemiImplicitEuler``, ``LeapfrogMidpoint``, the Milstein methods, ...).
 An explicit Runge–Kutta solver is always marked adaptive, but its error is
-``h Σ b̂ᵢ kᵢ`` with the tableau's ``b_error``: when every ``b̂ᵢ`` is zero (:class:`jaxlag.RK4`,
+``h Σ b̂ᵢ kᵢ`` with the tableau's ``b_error``: when every ``b̂ᵢ`` is zero ([`jaxlag.RK4`][jaxlag.RK4],
 which has no embedded method) the estimate is identically 0, the controller accepts every step
 and grows it by ``factormax`` (×10) each time. Over ``[0, 10]`` a harmonic oscillator then takes
-4 steps and ends 196 away from ``cos t`` with no error raised. :func:`check_solver_controller`
+4 steps and ends 196 away from ``cos t`` with no error raised. `check_solver_controller`
 refuses both combinations before anything is traced; ``jl.simulate``, ``jl.simulate_batch``
 (``jl.Vmap()`` and ``jl.Ensemble()``) and ``jl.fit`` (through ``simulate``) all call it.
 
@@ -93,7 +93,7 @@ def solver_controller_message(solver, controller, *, default_controller: bool = 
 
 
 def check_solver_controller(solver, controller, *, default_controller: bool = False) -> None:
-    """Raise ``ValueError`` (see :func:`solver_controller_message`) for a solver without an
+    """Raise ``ValueError`` (see `solver_controller_message`) for a solver without an
     error estimate under an adaptive step-size controller. Static: runs before any tracing."""
     text = solver_controller_message(solver, controller, default_controller=default_controller)
     if text is not None:

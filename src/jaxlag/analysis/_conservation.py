@@ -12,16 +12,17 @@ Sign convention of the library: ``d/dt ∂L/∂q̇ − ∂L/∂q = Qᶜ + Qⁿ�
       dQ_ξ/dt = δ_ξL + (Qᶜ + Qⁿᶜ)·ξ,     δ_ξL = ∂L/∂q·ξ + ∂L/∂q̇·ξ̇,   ξ̇ = (∂ξ/∂q) q̇ + ∂ξ/∂t,
 
   so ``Q_ξ`` is conserved when ``ξ`` is a symmetry of ``L`` (``δ_ξL = 0``) compatible with the
-  constraints and forces (:func:`noether_rate` evaluates the right-hand side exactly);
+  constraints and forces (`noether_rate` evaluates the right-hand side exactly);
 * the **energy function** ``h = q̇·p − L`` has ``dh/dt = −∂L/∂t + q̇·(Qᶜ + Qⁿᶜ)``.
 
-:func:`conservation_report` measures how well each of these is conserved along a
-:class:`~jaxlag.Trajectory`.
+`conservation_report` measures how well each of these is conserved along a
+[`Trajectory`][jaxlag.Trajectory].
 """
 
 from __future__ import annotations
 
-from typing import Callable, Mapping, NamedTuple, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -30,13 +31,12 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .. import _compile as compilation
+from .._conventions import as_array_leaves, wrap_configuration_function
 from .._custom_types import Args, Coordinates, RealScalarLike, Scalar, Vector, Velocities
 from .._mechanics import kkt as _kkt
 from .._mechanics import lagrangian as _mechanics
 from .._mechanics.constraints import constraint_rows
-from .._conventions import wrap_configuration_function
 from .._mechanics.lagrangian import as_time
-from .._conventions import as_array_leaves
 from .._system import System
 from .._trajectory import Trajectory
 
@@ -174,8 +174,8 @@ def noether_charge(
     r"""Noether charge ``Q_ξ = p·ξ(q, t) = Σ_i ∂L/∂q̇_i ξ_i`` for the generator ``ξ(q, [t], [args])``.
 
     For ``ξ = e_i`` (shifting one coordinate) it is ``p_i``; for a rotation of a Cartesian
-    layout (:func:`rotation_generator`) the angular momentum. Conserved when ``ξ`` is a symmetry
-    (see :func:`noether_rate`).
+    layout (`rotation_generator`) the angular momentum. Conserved when ``ξ`` is a symmetry
+    (see `noether_rate`).
     """
     return _noether_charge(system, generator, *_state(q, qd, t, args))
 
@@ -268,7 +268,7 @@ def ignorable_coordinates(
 
 # ----------------------------------------------------------------------------- report
 class ConservedQuantity(NamedTuple):
-    """One line of a :func:`conservation_report`.
+    """One line of a `conservation_report`.
 
     ``values`` (T,) along the trajectory; ``initial`` its value at the first saved time;
     ``max_deviation = max_t |Q(t) − Q(t₀)|``; ``relative_deviation`` the same divided by
@@ -307,9 +307,9 @@ def conservation_report(
     r"""How well the conserved quantities are conserved along ``trajectory``.
 
     Reports ``"energy"`` (the energy function ``h``), the momentum ``"p[i]"`` of each ignorable
-    coordinate (detected with :func:`ignorable_coordinates` at the first saved state unless
+    coordinate (detected with `ignorable_coordinates` at the first saved state unless
     ``ignorable`` gives the indices), and one Noether charge per entry of ``generators``
-    (``{name: ξ}``). Every entry is a :class:`ConservedQuantity`; :func:`format_report` prints a
+    (``{name: ξ}``). Every entry is a `ConservedQuantity`; `format_report` prints a
     table. Whether a quantity *should* be conserved is the physics' business: energy is not
     when ``L`` or the constraints depend on time or forces act.
     """
@@ -332,7 +332,7 @@ def conservation_report(
 
 
 def format_report(report: Mapping[str, ConservedQuantity]) -> str:
-    """A plain-text table of a :func:`conservation_report`."""
+    """A plain-text table of a `conservation_report`."""
     lines = [f"{'quantity':<16} {'initial':>16} {'max |Δ|':>12} {'relative':>12}"]
     for name, entry in report.items():
         lines.append(

@@ -33,20 +33,19 @@ import optimistix as optx
 from jaxtyping import Array, Float, Int
 
 from .. import _compile as compilation
+from .._conventions import as_array_leaves, as_float_state
 from .._custom_types import Args, Coordinates, RealScalarLike, Scalar, Vector, Velocities
 from .._mechanics import constraints as _constraints
 from .._mechanics import kkt as _kkt
 from .._mechanics import lagrangian as _mechanics
 from .._misc import is_concrete
-from .._conventions import as_float_state
-from .._conventions import as_array_leaves
 from .._system import System
 
 __all__ = ["Equilibrium", "equilibrium"]
 
 
 class Equilibrium(eqx.Module):
-    """The result of :func:`equilibrium`.
+    """The result of `equilibrium`.
 
     - ``q``, ``qd``: the equilibrium (or steady-motion) state.
     - ``multipliers``, ``velocity_multipliers``: ``λ``, ``μ`` holding it (``F + Jᵀλ + Aᵀμ = 0``).
@@ -249,7 +248,7 @@ def equilibrium(
       transformations, an ``eqx.error_if`` runtime error under ``jit``). With ``throw=False``
       inspect ``result`` and ``residual``.
 
-    Returns an :class:`Equilibrium`. Differentiable with respect to ``args`` by implicit
+    Returns an `Equilibrium`. Differentiable with respect to ``args`` by implicit
     differentiation of the root find (``jax.grad`` of, e.g., an orbit radius with respect to a
     mass). The equations are square only if the equilibrium is isolated; families of equilibria
     (a free particle, a nonholonomic system at rest) need more coordinates in ``fixed``.

@@ -42,7 +42,7 @@ stability when they are the same at every time along the motion: choose coordina
 steady motion is a uniform drift of cyclic coordinates (the spinning-wire bead in ``(r, φ, z)``
 with ``φ = ωt``, not in inertial Cartesian coordinates, where the tangent space itself rotates).
 
-**Normal modes** (:func:`normal_modes`, equilibria at rest): with ``E_q`` a basis of
+**Normal modes** (`normal_modes`, equilibria at rest): with ``E_q`` a basis of
 ``null(J)`` the small oscillations solve ``K_T v = ω² M_T v`` with ``M_T = E_qᵀ M E_q`` and
 ``K_T = −E_qᵀ M (∂q̈/∂q) E_q``, which includes the constraint curvature ``Σ λ_i ∂²f_i/∂q²``
 (the tension of a Cartesian pendulum is its restoring force). A symmetric generalized eigenproblem
@@ -53,7 +53,7 @@ stable for natural systems).
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -62,14 +62,14 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Complex, Float
 
 from .. import _compile as compilation
+from .._conventions import UserFunction, as_array_leaves, as_float_state
 from .._custom_types import Args, Coordinates, RealScalarLike, Scalar, Vector, Velocities
 from .._mechanics import constraints as _constraints
 from .._mechanics import kkt as _kkt
 from .._mechanics import lagrangian as _mechanics
 from .._misc import is_concrete
-from .._tolerances import CONSTRAINT_RCOND
-from .._conventions import UserFunction, as_array_leaves, as_float_state
 from .._system import System, check_input_shape
+from .._tolerances import CONSTRAINT_RCOND
 
 __all__ = ["Linearization", "NormalModes", "linearize", "normal_modes", "tangent_basis"]
 
@@ -173,7 +173,7 @@ class Linearization(eqx.Module):
 
     @property
     def closed_loop_eigenvalues(self) -> Complex[Array, " d"]:
-        """Eigenvalues of ``A_T + B_T F E`` (complex), ordered as :attr:`eigenvalues`."""
+        """Eigenvalues of ``A_T + B_T F E`` (complex), ordered as `eigenvalues`."""
         return _ordered_eigenvalues(self.reduced_closed_loop_matrix)
 
     def _feedback(self) -> Float[Array, "k 2*n"]:
@@ -213,7 +213,7 @@ class Linearization(eqx.Module):
 
     def stability(self, tolerance: float = 1e-6) -> str:
         """``"unstable"``, ``"asymptotically stable"``, ``"stable"`` or ``"marginal"`` (concrete
-        values only; under ``jit`` use :meth:`is_stable`)."""
+        values only; under ``jit`` use `is_stable`)."""
         matrix = np.asarray(self.reduced_state_matrix)
         values = np.linalg.eigvals(matrix)
         if values.size == 0:
@@ -268,7 +268,8 @@ def linearize(
     r"""Linearize the equations of motion about ``(q, q̇)`` at time ``t``.
 
     - ``q``, ``qd``: the state (``qd`` defaults to rest); typically from
-      :func:`jaxlag.analysis.equilibrium`. Any state may be given: about a non-equilibrium
+      [`jaxlag.analysis.equilibrium`][jaxlag.analysis.equilibrium]. Any state may be given: about a
+      non-equilibrium
       state the matrices describe the variational equation at that instant.
     - ``u``: for a system with an ``actuation`` ``Q_u(q, q̇, u, t)``, the input ``u₀`` (scalar or
       (k,)) about which to linearize; by default the system's control law at the state,
@@ -281,7 +282,7 @@ def linearize(
       that value (through the control law evaluated at the state, if it reads it) and there is no
       ``feedback_matrix``.
 
-    Returns a :class:`Linearization`. Works under ``jit``, ``vmap`` and ``grad`` (eigenvalues
+    Returns a `Linearization`. Works under ``jit``, ``vmap`` and ``grad`` (eigenvalues
     and frequencies are differentiable; nonsymmetric eigen-decompositions run on the CPU).
     """
     q, qd = as_float_state(q, jnp.zeros_like(jnp.asarray(q)) if qd is None else qd)
@@ -411,7 +412,7 @@ def normal_modes(
     Solves ``K_T v = ω² M_T v`` on the tangent space of the holonomic constraints (see the
     module docstring). ``q`` must be an equilibrium: ``|q̈(q, 0)|`` is checked against
     ``tolerance`` times the size of the cancelling terms. Systems with velocity constraints, or
-    steady motions (``q̇ ≠ 0``, gyroscopic terms), need :func:`linearize` instead.
+    steady motions (``q̇ ≠ 0``, gyroscopic terms), need `linearize` instead.
 
     Differentiable (``jax.grad`` of a frequency with respect to ``args``) and ``jit``-able.
     """

@@ -1,6 +1,6 @@
 """Experimental pieces of jaxlag, with no stability promise (as ``equinox.internal``).
 
-The ensemble integrator: :func:`simulate_ensemble` advances a whole batch as one explicit
+The ensemble integrator: `simulate_ensemble` advances a whole batch as one explicit
 Runge–Kutta loop (``jl.simulate_batch(..., method=jl.Ensemble())`` runs it), and its GPU kernel,
 written with ``jax.experimental.pallas``: the per-member equations of motion evaluated
 lane-wise (every array entry one column of the batch) inside a Pallas kernel

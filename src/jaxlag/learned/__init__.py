@@ -1,36 +1,64 @@
 r"""Learned Lagrangians: LNN, DeLaN and constrained (Cartesian) LNNs, trained with optax.
 
 Models are equinox Modules callable as ``L(q, q̇)``; ``model.system()`` is the
-:class:`~jaxlag.System` that simulates them (``M q̈ = F + Jᵀλ``, ``M = ∂²L/∂q̇²``, ``J = ∂f/∂q``
-for the known constraints of :class:`ConstrainedLagrangian`). Losses return a
-:class:`LossValue` that counts the members whose prediction is not finite instead of averaging
-NaN in; :func:`train_step` is one pure optax step and :func:`train` a loop with validation and
+[`System`][jaxlag.System] that simulates them (``M q̈ = F + Jᵀλ``, ``M = ∂²L/∂q̇²``, ``J = ∂f/∂q``
+for the known constraints of `ConstrainedLagrangian`). Losses return a
+`LossValue` that counts the members whose prediction is not finite instead of averaging
+NaN in; `train_step` is one pure optax step and `train` a loop with validation and
 early stopping around it.
 """
 
 from ._data import (
     StateData as StateData,
+)
+from ._data import (
     TrajectoryData as TrajectoryData,
+)
+from ._data import (
     segments as segments,
+)
+from ._data import (
     split as split,
 )
 from ._losses import (
     AbstractLoss as AbstractLoss,
+)
+from ._losses import (
     AccelerationLoss as AccelerationLoss,
+)
+from ._losses import (
     LossValue as LossValue,
+)
+from ._losses import (
     MultipleShootingLoss as MultipleShootingLoss,
+)
+from ._losses import (
     RolloutLoss as RolloutLoss,
+)
+from ._losses import (
     accelerations as accelerations,
+)
+from ._losses import (
     state_data as state_data,
 )
 from ._models import (
     AbstractLagrangian as AbstractLagrangian,
+)
+from ._models import (
     AngleEmbedding as AngleEmbedding,
+)
+from ._models import (
     ConstrainedLagrangian as ConstrainedLagrangian,
+)
+from ._models import (
     DeLaN as DeLaN,
+)
+from ._models import (
     MLPLagrangian as MLPLagrangian,
 )
-from ._training import TrainResult as TrainResult, train as train, train_step as train_step
+from ._training import TrainResult as TrainResult
+from ._training import train as train
+from ._training import train_step as train_step
 
 __all__ = [
     "AbstractLagrangian",

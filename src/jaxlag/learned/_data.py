@@ -12,7 +12,7 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray, PyTree
 class StateData(eqx.Module):
     r"""Samples ``(q, q̇, q̈)`` of a motion: one state per row (leading ``batch`` axis).
 
-    ``qdd`` are the accelerations of the data, the targets of :class:`AccelerationLoss`, which
+    ``qdd`` are the accelerations of the data, the targets of `AccelerationLoss`, which
     compares them with the model's ``q̈`` from ``M q̈ = F + Q + Jᵀλ``. ``forces`` (optional): the
     known generalized forces ``Q`` acting at each sample (motor torques, a known drive), in the
     coordinates ``q``. They fix the scale of the learned ``L``: from ``(q, q̇, q̈)`` alone ``L``
@@ -95,7 +95,7 @@ def segments(data: TrajectoryData, length: int) -> TrajectoryData:
 
     Segment ``k`` holds samples ``k(length − 1) … k(length − 1) + length − 1``: neighbours share
     their boundary sample, so every interval of the data is covered once. A tail shorter than
-    ``length`` is dropped. Returns a :class:`TrajectoryData` of ``batch · K`` members.
+    ``length`` is dropped. Returns a `TrajectoryData` of ``batch · K`` members.
     """
     times = data.ts.shape[1]
     length = int(length)

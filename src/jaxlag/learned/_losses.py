@@ -1,6 +1,6 @@
 r"""Learned accelerations without checks, and the losses of learned Lagrangians.
 
-Every loss returns a :class:`LossValue`: the mean over the members whose prediction is finite,
+Every loss returns a `LossValue`: the mean over the members whose prediction is finite,
 and the number of members that were not (an indefinite learned ``M = ∂²L/∂q̇²``, a rollout that
 blew up). Failed members are excluded from the mean and from its gradient, never averaged in as
 NaN: one bad state does not poison the batch.
@@ -8,7 +8,7 @@ NaN: one bad state does not poison the batch.
 
 from __future__ import annotations
 
-from typing import Callable, Union
+from collections.abc import Callable
 
 import diffrax
 import equinox as eqx
@@ -17,17 +17,17 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from .._batch.batch import simulate_batch
-from .._solver.rk4 import RK4
 from .._checks import Checks
 from .._custom_types import Args, RealScalarLike
 from .._mechanics import kkt as _kkt
 from .._mechanics import lagrangian as _lagrangian
 from .._mechanics.mass_solve import RobustSolve
+from .._solver.rk4 import RK4
 from .._system import System
 from ._data import StateData, TrajectoryData, segments
 from ._models import AbstractLagrangian
 
-Model = Union[AbstractLagrangian, System, Callable]
+Model = AbstractLagrangian | System | Callable
 
 
 def as_system(model: Model) -> System:
@@ -51,11 +51,11 @@ def accelerations(
 
     The check-free path for training: no host callbacks and no eigen-decomposition, so it runs
     under ``jit``, ``vmap`` and ``grad`` and exports. The KKT system is solved with
-    :class:`~jaxlag.RobustSolve` (whatever ``mass_solve`` the model's system has): Cholesky of
+    [`RobustSolve`][jaxlag.RobustSolve] (whatever ``mass_solve`` the model's system has): Cholesky of
     ``M = ∂²L/∂q̇²`` and of the Schur complement ``J M⁻¹ Jᵀ``, and a state whose pivots fall to
     ``rtol · max_i |M_ii|`` or below (``M`` indefinite or singular) gives NaN for that state
     alone, with a gradient of exactly zero (never NaN).
-    ``model``: an :class:`AbstractLagrangian`, a :class:`~jaxlag.System`, or a function ``L``.
+    ``model``: an `AbstractLagrangian`, a [`System`][jaxlag.System], or a function ``L``.
     """
     system = as_system(model)
     if not isinstance(system.mass_solve, RobustSolve):
@@ -93,9 +93,9 @@ class AbstractLoss(eqx.Module):
 
 
 class AccelerationLoss(AbstractLoss):
-    r"""Mean over states of ``Σᵢ ((q̈ᵢ − q̈ᵢᵈᵃᵗᵃ) / scaleᵢ)²`` on :class:`StateData`.
+    r"""Mean over states of ``Σᵢ ((q̈ᵢ − q̈ᵢᵈᵃᵗᵃ) / scaleᵢ)²`` on `StateData`.
 
-    ``q̈`` from :func:`accelerations` (``M q̈ = F + Jᵀλ``); the data's known generalized forces
+    ``q̈`` from `accelerations` (``M q̈ = F + Jᵀλ``); the data's known generalized forces
     ``StateData.forces`` (motor torques), if given, are part of ``F``. ``scale`` (n,): e.g. the standard
     deviation of the data's accelerations per coordinate, so that every coordinate weighs alike
     (``None``: 1). States whose ``q̈`` is not finite are counted in ``failed`` and left out.
@@ -135,7 +135,7 @@ def _with_known_forces(model: Model) -> System:
 class RolloutLoss(AbstractLoss):
     r"""Mean over trajectories and times of ``Σᵢ ((qᵢ(t) − qᵢᵈᵃᵗᵃ(t)) / scaleᵢ)²``.
 
-    Each member of :class:`TrajectoryData` is simulated with :func:`~jaxlag.simulate_batch` from
+    Each member of `TrajectoryData` is simulated with [`simulate_batch`][jaxlag.simulate_batch] from
     its first observed state; the models are autonomous, so all members share the first member's
     sample times relative to its start (sample every member alike). ``solver`` (default
     ``jl.RK4()``) takes constant steps ``dt0`` (``None``: the first sample spacing of the data
@@ -222,9 +222,9 @@ def _without_gradient(tree):
 
 
 class MultipleShootingLoss(AbstractLoss):
-    r"""A :class:`RolloutLoss` on short segments of the data, each started from its observed state.
+    r"""A `RolloutLoss` on short segments of the data, each started from its observed state.
 
-    The trajectories are cut into segments of ``length`` samples (:func:`segments`); every
+    The trajectories are cut into segments of ``length`` samples (`segments`); every
     segment is simulated from its own first observed ``(q, q̇)``. Short segments keep the loss
     smooth in the weights where one long rollout of a chaotic system is not.
     """

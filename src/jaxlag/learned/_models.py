@@ -1,6 +1,6 @@
 r"""Structured Lagrangians as equinox Modules: plain LNN, DeLaN and the constrained (Cartesian) form.
 
-Every model is an :class:`equinox.Module` callable as ``L(q, q̇)``: a pytree of weights that
+Every model is an `equinox.Module` callable as ``L(q, q̇)``: a pytree of weights that
 ``jl.System(model)`` (or ``model.system()``) accepts as its Lagrangian directly, so that
 ``eqx.filter_grad`` with respect to the weights and ``jl.simulate`` both see the same object. The
 equations of motion follow jaxlag's convention ``M q̈ = F + Jᵀλ`` with ``M = ∂²L/∂q̇²`` and
@@ -69,7 +69,7 @@ def _in_size(embedding: AngleEmbedding | None, n: int) -> int:
 class AbstractLagrangian(eqx.Module):
     r"""A learned Lagrangian ``L(q, q̇)``: an equinox Module of weights, callable as ``L(q, qd)``.
 
-    :meth:`system` wraps it in a :class:`~jaxlag.System` (with the model's known constraints, if
+    `system` wraps it in a [`System`][jaxlag.System] (with the model's known constraints, if
     any), whose equations of motion are ``M q̈ = F + Jᵀλ``, ``M = ∂²L/∂q̇²``.
     """
 
@@ -80,7 +80,7 @@ class AbstractLagrangian(eqx.Module):
         """``jl.System(self, mass_solve=jl.RobustSolve(), **kwargs)``: the learned mode, in which a
         state whose learned ``M`` cannot be factored gives NaN (and a simulation ends with
         ``FailureCode.NONFINITE``) instead of raising. Keyword arguments go to
-        :class:`~jaxlag.System`."""
+        [`System`][jaxlag.System]."""
         kwargs.setdefault("mass_solve", RobustSolve())
         return System(self, **kwargs)
 
@@ -88,8 +88,8 @@ class AbstractLagrangian(eqx.Module):
 class MLPLagrangian(AbstractLagrangian):
     r"""A plain Lagrangian neural network (Cranmer et al. 2020): ``L(q, q̇) = MLP(φ(q), q̇)``.
 
-    ``φ`` is the optional :class:`AngleEmbedding`. Nothing makes ``M = ∂²L/∂q̇²`` positive
-    definite: where it is not, the learned accelerations of :func:`~jaxlag.learned.accelerations`
+    ``φ`` is the optional `AngleEmbedding`. Nothing makes ``M = ∂²L/∂q̇²`` positive
+    definite: where it is not, the learned accelerations of [`accelerations`][jaxlag.learned.accelerations]
     are NaN for that state (counted by the losses, never averaged in). The activation must be
     twice differentiable (default ``softplus``; ``relu`` has ``M = 0``).
 
@@ -133,12 +133,12 @@ class DeLaN(AbstractLagrangian):
     ``softplus(·) + floor`` and its strictly lower part is free, both read from one MLP of
     ``φ(q)``; so ``M`` is symmetric positive definite by construction for every weight and state
     (``C`` is invertible: ``det C = Π C_ii ≥ floorⁿ``). ``V(q)`` is a second MLP of ``φ(q)``
-    (``φ`` the optional :class:`AngleEmbedding`).
+    (``φ`` the optional `AngleEmbedding`).
 
     That holds in exact arithmetic. In floating point ``M``'s condition number is ``κ(C)²``:
     where the network makes the off-diagonal of ``C`` dwarf its diagonal (e.g. entries ~40
     against the ``floor`` 10⁻³ gave ``κ(C) ≈ 6·10¹³``), ``M`` is singular to working precision,
-    and the learned-mode solve (:class:`~jaxlag.RobustSolve`) fails that state (NaN, counted)
+    and the learned-mode solve ([`RobustSolve`][jaxlag.RobustSolve]) fails that state (NaN, counted)
     rather than return a wrong ``q̈``. A larger ``floor`` lowers ``κ``.
     """
 
@@ -199,7 +199,7 @@ class ConstrainedLagrangian(AbstractLagrangian):
     ``L(x, ẋ) = ½ Σ_b m_b |ẋ_b|² − V(x)``: learned masses ``m_b = softplus(ρ_b) + floor > 0``
     (so ``M = diag(m_b I_dim)`` is positive definite) and a learned potential MLP ``V(x)``. The
     known constraints ``f(x) = 0`` (``constraints(x) -> (m,)``, rigid rods, pivots) are imposed by
-    jaxlag's KKT solve, ``M ẍ = F + Jᵀλ``, ``J ẍ = −γ``: :meth:`system` returns
+    jaxlag's KKT solve, ``M ẍ = F + Jᵀλ``, ``J ẍ = −γ``: `system` returns
     ``jl.System(self, holonomic=constraints, diagonal_mass=True)``.
     """
 

@@ -1,7 +1,7 @@
 r"""Training learned Lagrangians with optax: one public step function and a small loop around it.
 
 No hidden state: the model, the optimizer state and the data go in, the new model and optimizer
-state come out. ``train_step`` is what :func:`train` runs, so a hand-written optax loop is::
+state come out. ``train_step`` is what `train` runs, so a hand-written optax loop is::
 
     optimizer = optax.adam(1e-3)
     opt_state = optimizer.init(eqx.filter(model, eqx.is_inexact_array))
@@ -23,7 +23,8 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float, Int, PRNGKeyArray, PyTree
 
-from ._data import batch_size as _rows, take
+from ._data import batch_size as _rows
+from ._data import take
 from ._losses import LossValue
 
 
@@ -39,7 +40,7 @@ def train_step(
     Gradients are taken with ``eqx.filter_value_and_grad`` with respect to the model's
     floating-point arrays (static leaves such as activation functions pass through); the optax
     ``optimizer`` turns them into updates, applied with ``eqx.apply_updates``. The returned
-    :class:`LossValue` is the loss *before* the update. Pure: wrap it in ``eqx.filter_jit``, and
+    `LossValue` is the loss *before* the update. Pure: wrap it in ``eqx.filter_jit``, and
     ``jax.vmap`` it (with ``eqx.filter_vmap``) over an ensemble of models.
     """
 
@@ -68,7 +69,7 @@ def _evaluate(model, data, loss):
 
 
 class TrainResult(eqx.Module):
-    """What :func:`train` returns.
+    """What `train` returns.
 
     - ``model``: the model with the best validation loss (the last one without validation data).
     - ``train_loss`` (steps,): the (minibatch) training loss before each step.
@@ -107,7 +108,7 @@ def train(
 
     - ``batch_size``: sample this many rows of ``data`` (without replacement) per step, with
       ``key``; ``None`` uses all of ``data`` every step.
-    - ``validation``: held-out data (see :func:`split`), scored every ``validate_every`` steps; the
+    - ``validation``: held-out data (see `split`), scored every ``validate_every`` steps; the
       model with the lowest validation loss is returned.
     - ``patience``: stop when the validation loss has not dropped by more than
       ``min_improvement`` (relative) for ``patience`` evaluations in a row (early stopping).
@@ -117,7 +118,7 @@ def train(
     member fails has no finite gradient and would poison the weights: wrap the optimizer in
     ``optax.apply_if_finite(optimizer, max_consecutive_errors)`` to skip such steps.
 
-    The loop runs :func:`train_step` compiled once (``eqx.filter_jit``): changing ``data`` of the
+    The loop runs `train_step` compiled once (``eqx.filter_jit``): changing ``data`` of the
     same shapes does not recompile.
     """
     if steps < 1:

@@ -1,7 +1,7 @@
-"""Ready-made, documented models: each function returns a :class:`jaxlag.System`.
+"""Ready-made, documented models: each function returns a [`jaxlag.System`][jaxlag.System].
 
 Parameters are read from ``args``, a dict whose missing keys take the model's defaults
-(``model.defaults``; :func:`default_args` gives an editable copy), so ``args=None`` simulates the
+(``model.defaults``; `default_args` gives an editable copy), so ``args=None`` simulates the
 default model and ``jax.grad`` flows through any parameter you pass. Unknown keys are an error.
 Each docstring states the coordinates, the constraints (and the meaning of their multipliers)
 and the closed forms the model is tested against.
@@ -9,34 +9,34 @@ and the closed forms the model is tested against.
 =====================================  =========================================================
 model                                   forms / coordinates
 =====================================  =========================================================
-:func:`simple_pendulum`                 ``(θ,)`` generalized; ``(x, y)`` Cartesian
-:func:`double_pendulum`                 ``(θ₁, θ₂)``; ``(x₁, y₁, x₂, y₂)``
-:func:`n_link_pendulum`                 ``(θ₁..θ_n)``; ``(x₁, y₁, …)``
-:func:`spherical_pendulum`              ``(θ, φ)``; ``(x, y, z)``
-:func:`free_chain`                      ``(x₁, …, x_n)`` with rigid links, 2-D or 3-D
-:func:`cart_pole`                       ``(x, θ)`` with an input force on the cart
-:func:`bead_on_hoop`                    ``(θ,)``; ``(x, y, z)``; optionally spinning
-:func:`bead_on_rotating_parabola`       ``(r,)``; ``(r, φ, z)`` with a rheonomic drive
-:func:`particle_on_cone`                ``(r, φ)``; ``(r, θ, φ)``; ``(x, y, z)``
-:func:`particle_on_sphere`              ``(r, θ, φ)``; ``(x, y, z)``; optionally one-sided
-:func:`spiral`                          ``(r, θ)`` on ``r = aθ``; ``(θ,)``
-:func:`kepler`                          ``(r, φ)``; ``(x, y)``
-:func:`charged_particle`                ``(x, y, z)`` in uniform ``E``, ``B``
-:func:`rolling_disk`                    ``(x, y, φ, θ)``, nonholonomic
-:func:`disk_on_incline`                 ``(s, θ)`` with the rolling constraint ``s = Rθ``
-:func:`knife_edge`                      ``(x, y, θ)``, nonholonomic, on an incline
-:func:`heavy_top`                       ``(φ, θ, ψ)`` Euler; quaternion; the nine entries of R
-:func:`torque_free_body`                ``(φ, θ, ψ)``; quaternion; nine entries of R
-:func:`gyroscope`                       ``(α, β, γ)``: outer gimbal, inner gimbal, rotor
-:func:`rolling_disk_3d`                 ``(x, y, z, φ, θ, ψ)``, contact + rolling, leans and steers
-:func:`ball_on_turntable`               ``(x, y)`` and a quaternion, rolling on a moving table
-:func:`whipple_bicycle`                 ``(x, y, ψ, φ, θ, δ, θ_R, θ_F)``: four bodies, two rolling
+`simple_pendulum`                 ``(θ,)`` generalized; ``(x, y)`` Cartesian
+`double_pendulum`                 ``(θ₁, θ₂)``; ``(x₁, y₁, x₂, y₂)``
+`n_link_pendulum`                 ``(θ₁..θ_n)``; ``(x₁, y₁, …)``
+`spherical_pendulum`              ``(θ, φ)``; ``(x, y, z)``
+`free_chain`                      ``(x₁, …, x_n)`` with rigid links, 2-D or 3-D
+`cart_pole`                       ``(x, θ)`` with an input force on the cart
+`bead_on_hoop`                    ``(θ,)``; ``(x, y, z)``; optionally spinning
+`bead_on_rotating_parabola`       ``(r,)``; ``(r, φ, z)`` with a rheonomic drive
+`particle_on_cone`                ``(r, φ)``; ``(r, θ, φ)``; ``(x, y, z)``
+`particle_on_sphere`              ``(r, θ, φ)``; ``(x, y, z)``; optionally one-sided
+`spiral`                          ``(r, θ)`` on ``r = aθ``; ``(θ,)``
+`kepler`                          ``(r, φ)``; ``(x, y)``
+`charged_particle`                ``(x, y, z)`` in uniform ``E``, ``B``
+`rolling_disk`                    ``(x, y, φ, θ)``, nonholonomic
+`disk_on_incline`                 ``(s, θ)`` with the rolling constraint ``s = Rθ``
+`knife_edge`                      ``(x, y, θ)``, nonholonomic, on an incline
+`heavy_top`                       ``(φ, θ, ψ)`` Euler; quaternion; the nine entries of R
+`torque_free_body`                ``(φ, θ, ψ)``; quaternion; nine entries of R
+`gyroscope`                       ``(α, β, γ)``: outer gimbal, inner gimbal, rotor
+`rolling_disk_3d`                 ``(x, y, z, φ, θ, ψ)``, contact + rolling, leans and steers
+`ball_on_turntable`               ``(x, y)`` and a quaternion, rolling on a moving table
+`whipple_bicycle`                 ``(x, y, ψ, φ, θ, δ, θ_R, θ_F)``: four bodies, two rolling
                                         wheels (benchmark of Meijaard et al. 2007)
 =====================================  =========================================================
 """
 
-from ._common import default_args
 from ._bicycle import bicycle_eigenvalues, bicycle_upright_state, whipple_bicycle
+from ._common import default_args
 from ._fields import charged_particle, kepler
 from ._pendulums import (
     cart_pole,

@@ -2,10 +2,11 @@ r"""The Whipple bicycle: four rigid bodies, two rolling wheels, built from jaxla
 
 A genuine nonlinear model (not the published linear equations): the rear wheel ``R``, the rear
 frame with rider ``B``, the front frame (fork and handlebar) ``H`` and the front wheel ``F`` are
-:class:`~jaxlag.coordinates.RigidBody3D` bodies; the front wheel touches the ground by a holonomic
+[`RigidBody3D`][jaxlag.coordinates.RigidBody3D] bodies; the front wheel touches the ground by a holonomic
 constraint and both wheels roll without slipping by velocity constraints
-(:mod:`jaxlag.contact`). Its linearization about upright straight-ahead motion at speed ``v`` by
-:func:`jaxlag.analysis.linearize` is compared in the tests with the benchmark of Meijaard,
+(`jaxlag.contact`). Its linearization about upright straight-ahead motion at speed ``v`` by
+[`jaxlag.analysis.linearize`][jaxlag.analysis.linearize] is compared in the tests with the benchmark of
+Meijaard,
 Papadopoulos, Ruina and Schwab, *Linearized dynamics equations for the balance and steer of a
 bicycle: a benchmark and review*, Proc. R. Soc. A 463 (2007) 1955–1982.
 
@@ -27,10 +28,10 @@ from jaxtyping import Array, Complex, Float
 
 from .. import contact
 from .._custom_types import Args, RealScalarLike, Scalar
-from ..coordinates import RigidBody3D, lagrangian_from_positions
-from ..analysis._linearize import linearize
-from ..rotations import axis_angle_matrix, axis_rotation
 from .._system import System
+from ..analysis._linearize import linearize
+from ..coordinates import RigidBody3D, lagrangian_from_positions
+from ..rotations import axis_angle_matrix, axis_rotation
 from ._common import model, parameters
 
 BENCHMARK = {
@@ -87,7 +88,7 @@ def whipple_bicycle() -> System:
     force); both wheels roll without slipping (velocity constraints, rear then front, two rows each;
     multipliers = friction forces ``(F_x, F_y)`` in world axes). Three degrees of freedom in velocity
     (lean rate, steer rate, speed). Upright straight-ahead motion at speed ``v`` is
-    :func:`bicycle_upright_state`; its lean–steer eigenvalues are :func:`bicycle_eigenvalues`.
+    `bicycle_upright_state`; its lean–steer eigenvalues are `bicycle_eigenvalues`.
     """
 
     def p_of(args):
@@ -170,7 +171,7 @@ def whipple_bicycle() -> System:
 def bicycle_upright_state(
     speed: RealScalarLike, args: Args = None
 ) -> tuple[Float[Array, "8"], Float[Array, "8"]]:
-    """``(q, q̇)`` of :func:`whipple_bicycle` rolling upright and straight ahead at ``speed``:
+    """``(q, q̇)`` of `whipple_bicycle` rolling upright and straight ahead at ``speed``:
     all coordinates zero (the reference configuration satisfies the front contact), ``ẋ = v``,
     wheel rates ``v/r_R`` and ``v/r_F``."""
     p = parameters(whipple_bicycle, args)
@@ -184,8 +185,9 @@ def bicycle_upright_state(
 def bicycle_eigenvalues(
     speed: RealScalarLike, args: Args = None, *, return_residual: bool = False
 ) -> Complex[Array, "4"] | tuple[Complex[Array, "4"], Scalar]:
-    r"""Eigenvalues of the lean–steer motion of :func:`whipple_bicycle` about upright
-    straight-ahead motion at ``speed``, from :func:`jaxlag.analysis.linearize` of the nonlinear
+    r"""Eigenvalues of the lean–steer motion of `whipple_bicycle` about upright
+    straight-ahead motion at ``speed``, from [`jaxlag.analysis.linearize`][jaxlag.analysis.linearize] of the
+    nonlinear
     model.
 
     The linearization's tangent-space matrix ``A_T`` (dimension 10) carries, besides the four

@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import difflib
 import functools
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from types import MappingProxyType
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 from .._system import System
 
 
 class Model(Protocol):
-    """A model factory decorated by :func:`model`: returns a :class:`System` and carries its
+    """A model factory decorated by `model`: returns a `System` and carries its
     default parameters."""
 
     defaults: Mapping[str, Any]
@@ -23,7 +23,7 @@ class Model(Protocol):
 
 def model(defaults: dict, *, allow_extra: bool = False) -> Callable:
     """Decorate a model factory: record its default parameters as ``factory.defaults`` and
-    memoize it, so that asking twice for the same model returns the same :class:`System` (whose
+    memoize it, so that asking twice for the same model returns the same `System` (whose
     compiled simulations are then reused instead of recompiled)."""
 
     def wrap(factory):

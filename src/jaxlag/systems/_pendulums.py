@@ -7,14 +7,13 @@ the cart-pole's, measured from the upward vertical (upright is 0).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Callable
+from collections.abc import Callable, Mapping
 
 import jax.numpy as jnp
 
-from ..coordinates import RigidBody2D, lagrangian_from_positions, planar_chain
 from .._conventions import wrap_state_function
 from .._system import System
+from ..coordinates import RigidBody2D, lagrangian_from_positions, planar_chain
 from ._common import KeyReads, check_form, check_keys, model, parameters
 
 _FORMS = ("generalized", "cartesian")
@@ -181,7 +180,7 @@ def cart_pole(control: Callable | None = None) -> System:
     r"""A cart of mass ``M`` on a horizontal track carrying a uniform pole (rod) of mass ``m``, length ``l``.
 
     ``q = (x, θ)``: cart position and pole angle from the **upward** vertical (upright is 0,
-    positive tilts towards +x). The pole is a :class:`~jaxlag.coordinates.RigidBody2D` with its
+    positive tilts towards +x). The pole is a [`RigidBody2D`][jaxlag.coordinates.RigidBody2D] with its
     centre at ``(x + ½ l sin θ, ½ l cos θ)`` and ``I = m l²/12``:
 
         L = ½ (M + m) ẋ² + ½ m l ẋ θ̇ cos θ + ⅙ m l² θ̇² − ½ m g l cos θ.
@@ -189,7 +188,8 @@ def cart_pole(control: Callable | None = None) -> System:
     The input is a horizontal force ``u`` (a scalar) on the cart, the system's ``actuation``
     ``Q_u = (u, 0)``. Its control law is ``control(q, qd, [t], [args])`` if given (a feedback
     law, a time table in ``args``, or both), else the parameter ``force`` (a constant);
-    :func:`jaxlag.analysis.linearize` gives ``B = ∂(q̇, q̈)/∂u`` and, with a law, the feedback
+    [`jaxlag.analysis.linearize`][jaxlag.analysis.linearize] gives ``B = ∂(q̇, q̈)/∂u`` and, with a law, the
+    feedback
     ``∂u/∂(q, q̇)``. ``cart_pole().with_control(law)`` is the same model with another law.
     Extra keys in ``args`` are allowed for the keys that ``control`` reads (controller gains,
     tables); any other key is refused, with the closest parameter name (not after

@@ -1,14 +1,15 @@
 r"""Rigid bodies in space: the heavy symmetric top, the torque-free body, a gimballed gyroscope,
 a disk rolling on a plane and a ball on a turntable.
 
-All are built from :class:`~jaxlag.coordinates.RigidBody3D` (kinetic energy ``½ m|ẋ_c|² +
-½ ωᵀIω`` by autodiff) and, for rolling, :mod:`jaxlag.contact`. World axes: z up. Euler angles are
+All are built from [`RigidBody3D`][jaxlag.coordinates.RigidBody3D] (kinetic energy ``½ m|ẋ_c|² +
+½ ωᵀIω`` by autodiff) and, for rolling, `jaxlag.contact`. World axes: z up. Euler angles are
 the classical intrinsic ``"zxz"`` sequence ``(φ, θ, ψ)`` (precession, nutation, spin), singular
 at ``θ = 0, π``; quaternions ``(w, x, y, z)`` carry ``|q|² − 1 = 0`` as a holonomic constraint
 (its multiplier does no work) and pass through every orientation.
 
 Parameters are checked at the initial state of a run (by the Lagrangian of
-:func:`jaxlag.coordinates.lagrangian_from_positions`): masses ``≥ 0`` and principal moments
+[`jaxlag.coordinates.lagrangian_from_positions`][jaxlag.coordinates.lagrangian_from_positions]): masses ``≥
+0`` and principal moments
 ``≥ 0`` obeying the triangle inequality (for a symmetric top ``I3 ≤ 2 I1``; for
 ``torque_free_body`` each moment at most the sum of the other two). An
 Euler-angle model started at gimbal lock (``θ = 0`` or ``π``) is refused with a message that
@@ -20,9 +21,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from .. import contact
+from .._system import System
 from ..coordinates import RigidBody3D, lagrangian_from_positions
 from ..rotations import axis_rotation, euler_matrix, quaternion_matrix
-from .._system import System
 from ._common import check_form, model, parameters
 
 _ORIENTATION_FORMS = ("euler", "quaternion", "matrix")
@@ -83,7 +84,7 @@ def torque_free_body(form: str = "euler") -> System:
     r"""A rigid body with principal moments ``(I1, I2, I3)`` (body x, y, z) turning freely about
     its fixed centre of mass.
 
-    Forms as :func:`heavy_top` (``"euler"``, ``"quaternion"``, ``"matrix"``). Conserved: the
+    Forms as `heavy_top` (``"euler"``, ``"quaternion"``, ``"matrix"``). Conserved: the
     energy ``½ ωᵀIω`` and the angular momentum ``L = R I ω`` (world axes). Rotation about the
     axes of largest and smallest moment is stable, about the intermediate one unstable; a
     perturbed rotation at rate ``Ω`` about axis ``k`` (moments ``I_i``, ``I_j`` about the other two)
@@ -124,7 +125,7 @@ def gyroscope() -> System:
     gimbal's z axis (``R_r = R_i R_z(γ)``). The rotor (mass ``m``, moments ``I1``, ``I3`` about
     its centre of mass) has its centre of mass at distance ``l`` along its axis from the common
     centre; the gimbals (principal moments ``inner``, ``outer``, in their own axes) are centred.
-    With massless gimbals it is :func:`heavy_top` with ``(φ, θ, ψ) = (α, β, γ)``. Conserved:
+    With massless gimbals it is `heavy_top` with ``(φ, θ, ψ) = (α, β, γ)``. Conserved:
     the energy, ``p_α`` and ``p_γ = I3 (γ̇ + α̇ cos β)``. Parameters: ``m``, ``l``, ``g``, ``I1``,
     ``I3``, ``inner``, ``outer``.
     """
@@ -162,8 +163,10 @@ def rolling_disk_3d() -> System:
     ``q = (x, y, z, φ, θ, ψ)``: centre and ``"zxz"`` Euler angles (axis ``n = R e_z``, θ its tilt
     from the vertical, ``θ = π/2`` upright). Inertia ``(¼, ¼, ½) m R²``.
     Holonomic: the lowest rim point touches the plane, ``z − R sin θ = 0`` (written with
-    :func:`jaxlag.contact.contact_height`); its multiplier is the normal force ``N``.
-    Velocity constraints: :func:`jaxlag.contact.rolling_without_slipping`, the contact point of
+    [`jaxlag.contact.contact_height`][jaxlag.contact.contact_height]); its multiplier is the normal force
+    ``N``.
+    Velocity constraints:
+    [`jaxlag.contact.rolling_without_slipping`][jaxlag.contact.rolling_without_slipping], the contact point of
     the disk is at rest; the two multipliers are the friction force ``(F_x, F_y)`` on the disk.
 
     Steady rolling (θ, ``Ω = φ̇`` and ``s = ψ̇`` constant): with ``A = ¼ m R²``, ``C = ½ m R²``,
@@ -200,7 +203,8 @@ def ball_on_turntable() -> System:
     ``q = (x, y, w, a, b, c)``: the ball's centre (at height ``R``) and its orientation
     quaternion, with ``|q_{2:6}|² = 1``. Moment of inertia ``k m R²`` about any diameter
     (``k = 2/5`` a solid ball, ``2/3`` a thin shell). Rolling: the ball's contact point moves with
-    the table, ``v_P = Ω e_z × P`` (:func:`jaxlag.contact.rolling_without_slipping` with a
+    the table, ``v_P = Ω e_z × P``
+    ([`jaxlag.contact.rolling_without_slipping`][jaxlag.contact.rolling_without_slipping] with a
     ``surface_velocity``); the multipliers are the friction force.
 
     Closed form: the centre moves on a circle at the angular rate ``k Ω/(1 + k)`` (``2Ω/7`` for a

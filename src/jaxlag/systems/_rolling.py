@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ..coordinates import RigidBody2D, lagrangian_from_positions
 from .._system import System
+from ..coordinates import RigidBody2D, lagrangian_from_positions
 from ._common import model, parameters
 
 
@@ -45,7 +45,7 @@ def disk_on_incline() -> System:
     ``alpha``.
 
     ``q = (s, θ)``: distance travelled down the slope and rotation angle; the disk is a
-    :class:`~jaxlag.coordinates.RigidBody2D` with ``I = ½ m R²``:
+    [`RigidBody2D`][jaxlag.coordinates.RigidBody2D] with ``I = ½ m R²``:
     ``L = ½ m ṡ² + ¼ m R² θ̇² + m g s sin α``, rolling ``f = s − R θ = 0``.
     Closed forms: ``s̈ = ⅔ g sin α`` and ``λ = −⅓ m g sin α`` (the friction force, up the slope).
     Parameters: ``m``, ``R``, ``g``, ``alpha``.

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ..coordinates import cylindrical, lagrangian_from_positions, spherical
 from .._system import System
+from ..coordinates import cylindrical, lagrangian_from_positions, spherical
 from ._common import check_form, model, parameters
 
 
@@ -152,7 +152,7 @@ def particle_on_sphere(form: str = "spherical", unilateral: bool = False) -> Sys
     ``λ`` is the outward normal force; released from rest at θ₀ on the outside,
     ``λ = m g (3 cos θ − 2 cos θ₀)``, vanishing at ``cos θ = ⅔ cos θ₀``. With
     ``unilateral=True`` the constraint is one-sided (``f ≥ 0``, the outside) and the particle
-    leaves the sphere there (see :func:`jaxlag.simulate`). Parameters: ``m``, ``R``, ``g``.
+    leaves the sphere there (see [`jaxlag.simulate`][jaxlag.simulate]). Parameters: ``m``, ``R``, ``g``.
     """
     check_form("particle_on_sphere", form, ("spherical", "cartesian"))
 

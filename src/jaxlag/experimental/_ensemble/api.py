@@ -48,19 +48,19 @@ def simulate_ensemble(
     ``jl.simulate_batch(..., method=jl.Ensemble(backend), ...)``.
 
     **Arguments:** ``system``, ``q0``, ``qd0``, ``ts``, ``args``, ``args_axes`` and
-    ``sharding`` as for :func:`~jaxlag.simulate_batch` (``ts`` may also be per member,
+    ``sharding`` as for [`simulate_batch`][jaxlag.simulate_batch] (``ts`` may also be per member,
     ``(B, T)``); ``backend``: ``"xla"``, ``"pallas"`` (constant steps, one fused kernel),
     ``"pallas-interpret"`` or ``"auto"`` (``"xla"``); the supported options of
-    :func:`~jaxlag.simulate`, with its defaults: ``stepsize_controller``
+    [`simulate`][jaxlag.simulate], with its defaults: ``stepsize_controller``
     ``diffrax.ConstantStepSize()`` (with ``dt0``, concrete save times) or
     ``diffrax.PIDController`` (each member its own step size), ``saveat`` at ``t1`` or at
     given times only, ``adjoint`` ``diffrax.RecursiveCheckpointAdjoint()`` (reverse mode, the
     default) or ``diffrax.ForwardMode()``. Events, unilateral constraints, friction and
-    progress meters are not supported: use :func:`~jaxlag.simulate_batch` with
+    progress meters are not supported: use [`simulate_batch`][jaxlag.simulate_batch] with
     ``method=jl.Vmap()``.
 
-    Returns a :class:`~jaxlag.Trajectory` with a leading batch axis; ``throw=True`` raises
-    :class:`~jaxlag.SimulationError` naming the first failed member.
+    Returns a [`Trajectory`][jaxlag.Trajectory] with a leading batch axis; ``throw=True`` raises
+    [`SimulationError`][jaxlag.SimulationError] naming the first failed member.
     """
     return simulate_batch(
         system,

@@ -1,9 +1,9 @@
 """The ensemble integrator's entry: the options it supports, their checks, the constant-step
-grid on the host, and :func:`~jaxlag.experimental._ensemble.integrate.integrate_ensemble` (or the
+grid on the host, and `integrate_ensemble` (or the
 Pallas kernel) under one ``jax.jit``.
 
-:func:`run_batch` is what ``jl.Ensemble().simulate`` calls for ``jl.simulate_batch``;
-:func:`integrate_batch` takes the supported options of :func:`~jaxlag.simulate` as keywords
+`run_batch` is what ``jl.Ensemble().simulate`` calls for ``jl.simulate_batch``;
+`integrate_batch` takes the supported options of [`simulate`][jaxlag.simulate] as keywords
 with ``simulate``'s defaults, so an option it does not support cannot reach it.
 """
 
@@ -50,7 +50,7 @@ _SAVE_Y = diffrax.SubSaveAt(t1=True).fn  # diffrax's default: save the state as 
 
 class ConstantGrid(eqx.Module):
     """Constant steps: ``steps[b, k]`` equal steps in save interval ``k`` of member ``b``
-    (:func:`~jaxlag.experimental._ensemble.integrate.constant_grid`), ``inner`` their maximum,
+    (`constant_grid`), ``inner`` their maximum,
     ``uniform`` whether every entry equals it and ``shared_times`` whether every member has
     the same save times (the lane-wise Pallas kernel)."""
 
@@ -85,7 +85,7 @@ class EnsembleRun(eqx.Module):
 def run_batch(problem: BatchProblem, backend: str, options: SimulateOptions) -> Trajectory:
     """``simulate_batch(..., method=jl.Ensemble(backend), **options)``: a ``ValueError`` that
     points to ``method=jl.Vmap()`` for an option the ensemble loop does not have, else
-    :func:`integrate_batch`. (``throw`` is read by ``simulate_batch``, which raises from the
+    `integrate_batch`. (``throw`` is read by ``simulate_batch``, which raises from the
     failure records.)"""
     for name in options:
         if name in _UNSUPPORTED:
@@ -131,7 +131,7 @@ def integrate_batch(
     projection: Projection | None = Projection(),
     checks: Checks = Checks(),
 ) -> Trajectory:
-    """The batch integrated by the ensemble loop, the options as for :func:`~jaxlag.simulate`;
+    """The batch integrated by the ensemble loop, the options as for [`simulate`][jaxlag.simulate];
     failed members are recorded in ``Trajectory.failure`` (the caller raises for them)."""
     run = _prepare(
         problem,
@@ -188,7 +188,7 @@ def _prepare(
     projection: Projection | None = Projection(),
     checks: Checks = Checks(),
 ) -> EnsembleRun:
-    """The options checked and turned into an :class:`EnsembleRun` (a ``ValueError`` or
+    """The options checked and turned into an `EnsembleRun` (a ``ValueError`` or
     ``TypeError`` for what the loop cannot do), on the host: the save times checked and, for
     constant steps, gridded."""
     p = problem

@@ -9,11 +9,11 @@ advanced by **one** loop whose body is one explicit Runge–Kutta step of the ba
     k_i = f(t + c_i h, y + h Σ_{j<i} a_ij k_j),   y₁ = y + h Σ b_i k_i,   e = h Σ b̂_i k_i
 
 with ``f(t, (q, q̇)) = (q̇, q̈)`` the library's own equations of motion
-(:class:`~jaxlag.EquationsOfMotion`: ``M q̈ = F + Jᵀλ + Aᵀμ`` by the range-space KKT solve)
+([`EquationsOfMotion`][jaxlag.EquationsOfMotion]: ``M q̈ = F + Jᵀλ + Aᵀμ`` by the range-space KKT solve)
 ``jax.vmap``-ed over the batch axis inside the body, and ``(c, a, b, b̂)`` the Butcher tableau of
-the diffrax solver passed as ``solver=`` (``diffrax.Tsit5().tableau``, ...; :class:`~jaxlag.RK4` is the
+the diffrax solver passed as ``solver=`` (``diffrax.Tsit5().tableau``, ...; [`RK4`][jaxlag.RK4] is the
 classic fourth-order method as a diffrax solver). Constrained systems are projected onto the
-manifold after every accepted step with the same :class:`~jaxlag.Projection` as ``simulate``.
+manifold after every accepted step with the same [`Projection`][jaxlag.Projection] as ``simulate``.
 
 **Constant steps** (``diffrax.ConstantStepSize()`` and ``dt0``): save interval ``k`` of member
 ``b`` is divided into ``m = ceil((t_{k+1} − t_k)/dt0)`` equal steps, so the last step lands
@@ -31,8 +31,8 @@ order (after a step clipped onto a save time the unclipped proposal is kept). Fi
 are masked; the loop stops when every member has reached its last save time or failed: a member
 whose step is rejected at round-off size (``≤ 64 ε max(|t|, t₁ − t₀)``) stops there, as
 ``jl.simulate``'s guard stops diffrax (non-finite trial state: code 1; finite: the step size
-collapsed, code 5). :func:`member_failures` turns how each member ended into the
-:class:`~jaxlag._errors.Failure` record of ``jl.simulate`` (a non-finite save also fails the
+collapsed, code 5). `member_failures` turns how each member ended into the
+`Failure` record of ``jl.simulate`` (a non-finite save also fails the
 member: constant steps cannot shrink), with the unreached saves ``inf``. The loop is
 ``equinox.internal.while_loop``: ``kind="checkpointed"`` (reverse mode, memory ``O(log steps)``)
 with the default ``adjoint=diffrax.RecursiveCheckpointAdjoint()``, ``kind="lax"`` (forward mode)
@@ -40,7 +40,7 @@ with ``adjoint=diffrax.ForwardMode()``, as in diffrax. The saved states are the 
 buffers: every member writes once per iteration (one batched scatter), into its next save column
 when it lands on a save time and into a spare column otherwise, so checkpoints never copy them.
 
-The GPU kernel backend is :mod:`jaxlag.experimental._ensemble.pallas`.
+The GPU kernel backend is `jaxlag.experimental._ensemble.pallas`.
 """
 
 from typing import Any
@@ -55,15 +55,15 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from ... import _errors as failures
-from ..._errors import FailureCode
 from ..._checks import initial_state_diagnostics, validate_initial_state
+from ..._custom_types import Args, RealScalarLike
+from ..._errors import FailureCode
+from ..._mechanics.constant_mass import ConstantMass, with_constant_mass
 from ..._solver.guard import _ULPS
 from ..._solver.validation import solver_controller_message
-from ..._custom_types import Args, RealScalarLike
-from ..._mechanics.constant_mass import ConstantMass, with_constant_mass
-from ..._vector_field import EquationsOfMotion
 from ..._stabilization import Baumgarte, Projection
 from ..._system import System
+from ..._vector_field import EquationsOfMotion
 
 __all__ = ["EnsembleSettings", "tableau_of", "integrate_ensemble", "ensemble_problem"]
 
@@ -141,7 +141,7 @@ def _static_float(value, name):
 
 
 def make_settings(solver, stepsize_controller, max_steps, adjoint, throw) -> EnsembleSettings:
-    """Validate the diffrax objects and turn them into :class:`EnsembleSettings`."""
+    """Validate the diffrax objects and turn them into `EnsembleSettings`."""
     tableau = tableau_of(solver)
     if max_steps is None or int(max_steps) < 1:
         raise ValueError(
@@ -210,7 +210,7 @@ class BatchedField(eqx.Module):
     """``(t (B,), (q, q̇) (B, n)) ↦ ((q̇, q̈), ...)``: the equations of motion vmapped over members.
 
     ``member_args`` have a leading batch axis on every leaf, ``shared_args`` none;
-    ``constant_mass`` is the per-member :class:`~jaxlag._mechanics.constant_mass.ConstantMass` (or ``None``).
+    ``constant_mass`` is the per-member `ConstantMass` (or ``None``).
     """
 
     system: System
@@ -541,10 +541,10 @@ def _adaptive_loop(field, settings, ts, y0, dt0):
 
 
 def ensemble_problem(system, q0, qd0, ts, member_args, shared_args, baumgarte, projection, check, tolerance):
-    """Checked initial states and the :class:`BatchedField` of a batch (inside ``jit``):
+    """Checked initial states and the `BatchedField` of a batch (inside ``jit``):
     ``(field, (q0, q̇0), diagnostics)``. ``check``: ``True`` compiles the initial-state check in
     (static message), ``"host"`` returns every member's diagnostics for the host to raise with
-    the numbers and the member (:func:`~jaxlag._checks.raise_for_initial_states`; else
+    the numbers and the member (`raise_for_initial_states`; else
     ``diagnostics`` is ``None``), ``False`` skips it."""
 
     def prepare(q, qd, t, member):
@@ -565,11 +565,11 @@ def ensemble_problem(system, q0, qd0, ts, member_args, shared_args, baumgarte, p
 
 def integrate_ensemble(field, settings, ts, y0, dt0, grid=None):
     """Run the loop; returns ``(saved (q, q̇) each (T−1, B, n), stats, record)``: ``record``
-    the adaptive loop's :class:`LoopRecord`, ``None`` for constant steps (every member runs to
-    its end; :func:`member_failures` finds the non-finite ones).
+    the adaptive loop's `LoopRecord`, ``None`` for constant steps (every member runs to
+    its end; `member_failures` finds the non-finite ones).
 
     ``ts`` (B, T), the first column being the start times; ``grid = (m, inner, uniform)`` for
-    constant steps: ``m`` (B, T−1) steps per save interval (see :func:`constant_grid`), ``inner``
+    constant steps: ``m`` (B, T−1) steps per save interval (see `constant_grid`), ``inner``
     its maximum (static) and ``uniform`` whether every entry equals it (static).
     """
     if settings.adaptive:
@@ -583,7 +583,7 @@ def integrate_ensemble(field, settings, ts, y0, dt0, grid=None):
 
 class LoopRecord(eqx.Module):
     """How the adaptive loop ended for each member (leading axis B): ``code`` (the results
-    enumeration of :mod:`jaxlag._errors`), ``reached`` (save columns written, start excluded),
+    enumeration of `jaxlag._errors`), ``reached`` (save columns written, start excluded),
     ``t`` (time reached), ``dt`` (last step tried) and ``q``, ``qd`` (last accepted state)."""
 
     code: Int[Array, " batch"]
@@ -603,10 +603,10 @@ def _result_of(code):
 
 
 def member_failures(ts, y0, saved, stats, record, steps_per_interval, max_steps):
-    """Each member's :class:`~jaxlag._errors.Failure` record, its diffrax result and its saves
+    """Each member's `Failure` record, its diffrax result and its saves
     with the unreached ones set to ``inf`` (diffrax's and ``jl.Vmap()``'s convention).
 
-    ``saved`` (q, q̇) each (T−1, B, n); ``record`` the adaptive loop's :class:`LoopRecord`, or
+    ``saved`` (q, q̇) each (T−1, B, n); ``record`` the adaptive loop's `LoopRecord`, or
     ``None`` for constant steps (every save is reached), with ``steps_per_interval`` (B, T−1).
     Either way a member whose saved state is non-finite failed there (code 1, non-finite): a
     constant step cannot be shrunk, and the Pallas kernel and the constant-step loop do not stop

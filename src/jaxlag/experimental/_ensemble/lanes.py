@@ -14,7 +14,7 @@ when they are the same for every member). Then
 * ``dot_general`` and ``reduce_sum`` become sums of column products.
 
 The result is the same arithmetic as the vmapped function, written as straight-line code on
-columns. Primitives outside this set raise :class:`NotImplementedError` (the caller falls back).
+columns. Primitives outside this set raise `NotImplementedError` (the caller falls back).
 """
 
 import functools
@@ -295,7 +295,7 @@ def evaluate(jaxpr: jcore.Jaxpr, consts, *args):
 def lanewise(fn, *example_args):
     """``fn`` (per member, on ``example_args``' shapes) as a function of object arrays of columns.
 
-    Traces ``fn`` once; raises :class:`NotImplementedError` at that point already if a primitive
+    Traces ``fn`` once; raises `NotImplementedError` at that point already if a primitive
     has no lane-wise rule (checked by a dry evaluation on scalar stand-ins).
     """
     closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*example_args)

@@ -8,15 +8,15 @@ the saved states. The state lives in memory as structure of arrays, ``(n, B)`` w
 along the last (lane) axis, so each coordinate of a block is one contiguous load.
 
 The right-hand side inside the kernel is the same
-:class:`~jaxlag.experimental._ensemble.integrate.BatchedField` as in the XLA loop (the library's
+`BatchedField` as in the XLA loop (the library's
 equations of motion, vmapped over the block): the arithmetic is
 identical, so results agree with the XLA loop to rounding. The kernel's work is traced to jaxprs
 first, so that constants the equations create or close over become kernel inputs (Pallas kernels
 may not capture arrays). Whether a given system's equations
 lower to a GPU kernel (Triton / Mosaic GPU) depends on the operations autodiff produced; when they
-do not, :func:`~jaxlag.experimental._ensemble.entry.integrate_batch` catches the lowering error,
+do not, `integrate_batch` catches the lowering error,
 warns and uses the XLA loop. When all members share their save times the kernel is *lane-wise*
-(:func:`_lanes_integrate`, :mod:`jaxlag.experimental._ensemble.lanes`): every state entry and
+(`_lanes_integrate`, `jaxlag.experimental._ensemble.lanes`): every state entry and
 parameter is a 1-D column and the step of one member is evaluated on columns as elementwise code,
 which is what the Triton
 lowering accepts (checked with ``jax.export`` for CUDA, float64: double pendulum, constrained
@@ -216,7 +216,7 @@ def _kernel_integrate(field, settings, ts, y0, steps_per_interval, inner, unifor
 
 
 def _lanes_integrate(field, settings, ts, y0, inner, interpret, block):
-    """The kernel with lane-wise equations (:mod:`jaxlag.experimental._ensemble.lanes`): every
+    """The kernel with lane-wise equations (`jaxlag.experimental._ensemble.lanes`): every
         state entry, parameter and per-member constant is its own 1-D column of the batch, and the
     Runge–Kutta step of one
     member, traced once, is evaluated on columns as straight-line elementwise code. Needs the
@@ -367,7 +367,7 @@ def _lanes_integrate(field, settings, ts, y0, inner, interpret, block):
 
 def integrate_pallas(field, settings, ts, y0, grid, interpret=False, block=None):
     """Constant steps in one kernel; returns what
-        :func:`~jaxlag.experimental._ensemble.integrate.integrate_ensemble` returns. Differentiable
+        `integrate_ensemble` returns. Differentiable
     (the tangents are the XLA loop's, see the module docstring)."""
     steps_per_interval, inner, uniform, shared_times = grid
     block = BLOCK if block is None else block
