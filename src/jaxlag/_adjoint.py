@@ -28,8 +28,6 @@ Like the checkpointed adjoint it replaces, this is first-order reverse mode (``j
 pass ``adjoint=diffrax.ForwardMode()``.
 """
 
-from __future__ import annotations
-
 import abc
 import math
 from collections.abc import Callable

@@ -30,8 +30,6 @@ reported by JAX with a warning and the program compiled again); jaxlag stores no
 and loads no executables of its own.
 """
 
-from __future__ import annotations
-
 import os
 import stat
 import time

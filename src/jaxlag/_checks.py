@@ -15,8 +15,6 @@ solve they guard. The eager (host) diagnosis still reports the eigenvalues of ``
 singular values of ``[J; A]``, computed by NumPy.
 """
 
-from __future__ import annotations
-
 import abc
 import functools as ft
 

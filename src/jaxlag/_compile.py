@@ -20,8 +20,6 @@ environment variable ``JAXLAG_COMPILER_OPTIONS=0`` to compile with XLA's default
 by itself with an XLA that does not know the option: checked once, by one tiny compile).
 """
 
-from __future__ import annotations
-
 import functools
 import os
 from collections.abc import Callable

@@ -15,8 +15,6 @@ jaxlag passes the state positionally and the rest by keyword:
 The signature is read once, when the function is wrapped, with `inspect.signature`.
 """
 
-from __future__ import annotations
-
 import inspect
 from collections.abc import Callable
 from typing import Any, overload

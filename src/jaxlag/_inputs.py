@@ -1,7 +1,5 @@
 """Time-table inputs (the implementation of `jaxlag.inputs`, which documents them)."""
 
-from __future__ import annotations
-
 import abc
 from typing import ClassVar
 

@@ -1,7 +1,5 @@
 """Small helpers with no jaxlag dependency."""
 
-from __future__ import annotations
-
 import jax
 import jax.core
 

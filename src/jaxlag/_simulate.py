@@ -1,7 +1,5 @@
 """``simulate``: integrate a [`System`][jaxlag.System] with ``diffrax.diffeqsolve``."""
 
-from __future__ import annotations
-
 import dataclasses
 import functools as ft
 from collections.abc import Sequence

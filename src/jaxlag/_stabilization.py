@@ -18,8 +18,6 @@ error. Two remedies, usable together:
   is applied before the next step starts.
 """
 
-from __future__ import annotations
-
 from collections.abc import Sequence
 from typing import Any
 

@@ -1,7 +1,5 @@
 """``System``: a Lagrangian with its constraints and non-conservative forces, as a pytree."""
 
-from __future__ import annotations
-
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
@@ -147,7 +145,7 @@ class System(eqx.Module):
                     "multipliers there. Remove the redundant constraints."
                 )
 
-    def with_control(self, control: Callable | None) -> System:
+    def with_control(self, control: Callable | None) -> "System":
         """A copy of this system with the control law ``u = control(q, qd, [t], [args])``
         (``None``: without one). The copy shares every other function and field."""
         if control is not None and self.actuation is None:

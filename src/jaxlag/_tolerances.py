@@ -1,7 +1,5 @@
 """Thresholds shared by the checks and the failure diagnosis: rank tests and default tolerances."""
 
-from __future__ import annotations
-
 import jax.numpy as jnp
 
 #: A mass matrix whose smallest eigenvalue is below this fraction of its largest is singular

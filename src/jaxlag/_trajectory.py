@@ -1,7 +1,5 @@
 """``Trajectory``: the saved states of a simulation and the quantities derived from them."""
 
-from __future__ import annotations
-
 from typing import Any
 
 import diffrax
@@ -131,7 +129,7 @@ class Trajectory(eqx.Module):
         events: EventLog | None = None,
         failure: Failure | None = None,
         modes: Int[Array, "*batch times k"] | None = None,
-    ) -> Trajectory:
+    ) -> "Trajectory":
         arrays, static = eqx.partition(system, eqx.is_array)
         return cls(t, q, qd, args, stats, result, arrays, active, events, failure, static, modes)
 

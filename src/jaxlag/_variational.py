@@ -57,8 +57,6 @@ Which structure ``L`` has is read off its jaxpr (a static, conservative dependen
 numerically at the initial state instead.
 """
 
-from __future__ import annotations
-
 from typing import Any, ClassVar, NamedTuple, cast
 
 import diffrax

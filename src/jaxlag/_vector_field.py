@@ -5,8 +5,6 @@ constrained system, ``M q̈ = F`` otherwise; with Coulomb friction in a given st
 ``M q̈ = F + Jᵀλ + Tᵀλ_t`` (`jaxlag._mechanics.friction`).
 """
 
-from __future__ import annotations
-
 import equinox as eqx
 from jaxtyping import Array, Bool, Float
 

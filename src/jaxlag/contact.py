@@ -23,8 +23,6 @@ force of the world force ``(μ₀, μ₁, 0)`` at ``P``: **the velocity multipli
 force on the body in world axes**, ``traj.velocity_multipliers == (F_x, F_y)``.
 """
 
-from __future__ import annotations
-
 from collections.abc import Callable
 
 import jax.numpy as jnp

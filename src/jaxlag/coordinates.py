@@ -26,8 +26,6 @@ position maps::
     system = jl.System(L)
 """
 
-from __future__ import annotations
-
 from collections.abc import Callable, Sequence
 from typing import cast
 

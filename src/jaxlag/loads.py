@@ -21,8 +21,6 @@ array may be given instead of a function::
     system = jl.System(L, forces=loads.generalized_forces(spring, motor))
 """
 
-from __future__ import annotations
-
 from collections.abc import Callable, Sequence
 
 import equinox as eqx

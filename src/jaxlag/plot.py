@@ -16,8 +16,6 @@ one of these functions is called, never by ``import jaxlag``; install it with
 ``pip install matplotlib`` (or ``pip install "jaxlag[plot]"``).
 """
 
-from __future__ import annotations
-
 import pathlib
 import warnings
 from collections.abc import Callable, Sequence
@@ -28,11 +26,15 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._trajectory import Trajectory
 
+# matplotlib is optional and imported only when something is drawn, so its classes exist for the
+# type checker only; at run time the annotations that name them are `Any` (not checked).
 if TYPE_CHECKING:
     from matplotlib.animation import FuncAnimation
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
+else:
+    FuncAnimation = Axes = Figure = Line2D = Any
 
 __all__ = ["animate", "animate_chain", "body_axes", "chain", "constraint_drift", "energy", "snapshots"]
 

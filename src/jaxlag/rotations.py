@@ -38,8 +38,6 @@ nine entries of ``R`` + ``RᵀR = I``   nowhere                                 
 ``|cos a₂|``, 0 at gimbal lock).
 """
 
-from __future__ import annotations
-
 import contextlib
 import contextvars
 from collections.abc import Callable, Iterator

@@ -17,8 +17,6 @@ The analysis (`jaxlag._mechanics.dependence`) is conservative: a false "depends"
 speed-up, it never changes a result.
 """
 
-from __future__ import annotations
-
 from typing import Any
 
 import equinox as eqx

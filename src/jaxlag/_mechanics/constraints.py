@@ -15,8 +15,6 @@ given as one function affine in ``q̇``; ``A = ∂g/∂q̇`` and, at acceleratio
 Stacked, the constraint rows are ``G = [J; A]`` and the right-hand side ``c = [−γ; −γ_v]``.
 """
 
-from __future__ import annotations
-
 import jax
 import jax.numpy as jnp
 

@@ -9,8 +9,6 @@ itself (``jit``-ted functions, custom derivatives, checkpoints), which are follo
 iterations), so they count as "depends on everything they take".
 """
 
-from __future__ import annotations
-
 import equinox as eqx
 import jax
 import jax.core

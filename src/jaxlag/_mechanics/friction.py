@@ -29,8 +29,6 @@ in ``λ`` since ``u`` depends on the state only), or the cone is replaced by a p
 ``p`` edge directions, each slip segment having one fixed edge, like the planar ``s``.
 """
 
-from __future__ import annotations
-
 from collections.abc import Callable, Sequence
 from typing import Any
 

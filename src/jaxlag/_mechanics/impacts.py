@@ -39,8 +39,6 @@ which the multiplier carries the load (``λ = m g`` for a ball at rest). Bodies 
 the constraint (``f̈_i ≥ 0``) never count as Zeno.
 """
 
-from __future__ import annotations
-
 from collections.abc import Sequence
 
 import equinox as eqx

@@ -18,8 +18,6 @@ When the constraints are redundant ``S`` is singular; with ``least_squares=True`
 unique when the redundant constraints are consistent.
 """
 
-from __future__ import annotations
-
 from collections.abc import Callable
 from typing import Any
 

@@ -17,8 +17,6 @@ expand, with ``p = ∂L/∂q̇``, to ``M q̈ = F`` where
 No dense Hessian in ``q`` is ever formed.
 """
 
-from __future__ import annotations
-
 import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike

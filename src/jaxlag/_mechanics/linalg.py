@@ -7,8 +7,6 @@ as scalar operations at trace time, which XLA fuses into a single kernel; above 
 LAPACK's Cholesky (``jax.scipy.linalg.cho_factor``/``cho_solve``). Both are differentiable.
 """
 
-from __future__ import annotations
-
 from collections.abc import Callable
 from typing import Any
 

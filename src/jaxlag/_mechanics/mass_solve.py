@@ -21,8 +21,6 @@ deadlock the CPU thread pool). Small matrices (n ≤ 8) are factored by written-
 operations, larger ones by a loop of rank-one updates (no LAPACK call either).
 """
 
-from __future__ import annotations
-
 import abc
 import numbers
 from collections.abc import Callable

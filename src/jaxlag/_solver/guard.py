@@ -4,8 +4,6 @@ Wraps the user's controller (`guard`); the guard's state records the time reache
 step size and the last accepted state, which the failure record (``jaxlag._errors``) reports.
 """
 
-from __future__ import annotations
-
 from typing import Any
 
 import diffrax

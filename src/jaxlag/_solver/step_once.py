@@ -10,8 +10,6 @@ function, same static parts, same abstract arguments). The program is unchanged 
 the call); only tracing time is saved.
 """
 
-from __future__ import annotations
-
 import diffrax
 import equinox as eqx
 

@@ -36,8 +36,6 @@ its tolerances from the controller only for a solver it recognises as implicit),
 arrays are not differentiated.
 """
 
-from __future__ import annotations
-
 from typing import Any
 
 import diffrax

@@ -17,8 +17,6 @@ refuses both combinations before anything is traced; ``jl.simulate``, ``jl.simul
 ``HalfSolver(jl.RK4())`` with a ``PIDController`` is accepted.
 """
 
-from __future__ import annotations
-
 import diffrax
 import numpy as np
 

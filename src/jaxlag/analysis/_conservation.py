@@ -19,8 +19,6 @@ Sign convention of the library: ``d/dt ∂L/∂q̇ − ∂L/∂q = Qᶜ + Qⁿ�
 [`Trajectory`][jaxlag.Trajectory].
 """
 
-from __future__ import annotations
-
 from collections.abc import Callable, Mapping, Sequence
 from typing import NamedTuple
 

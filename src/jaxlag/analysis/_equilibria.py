@@ -21,8 +21,6 @@ goes in ``fixed`` (held at its guessed value, its equation dropped). Its rate is
 ``q̈``, ``f``, ``ḟ`` and ``g`` is checked, so a wrongly fixed coordinate is reported.
 """
 
-from __future__ import annotations
-
 from collections.abc import Sequence
 
 import equinox as eqx

@@ -51,8 +51,6 @@ with ``jax.grad``. Negative ``ω²`` are unstable directions (Lagrange–Dirichl
 stable for natural systems).
 """
 
-from __future__ import annotations
-
 from collections.abc import Callable
 
 import equinox as eqx

@@ -1,7 +1,5 @@
 """Training data for learned Lagrangians: states with accelerations, and sampled trajectories."""
 
-from __future__ import annotations
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp

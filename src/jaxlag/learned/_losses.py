@@ -6,8 +6,6 @@ blew up). Failed members are excluded from the mean and from its gradient, never
 NaN: one bad state does not poison the batch.
 """
 
-from __future__ import annotations
-
 from collections.abc import Callable
 
 import diffrax

@@ -7,8 +7,6 @@ equations of motion follow jaxlag's convention ``M q̈ = F + Jᵀλ`` with ``M =
 ``J = ∂f/∂q`` for the known constraints ``f(q) = 0``.
 """
 
-from __future__ import annotations
-
 from collections.abc import Callable, Sequence
 from typing import Any
 

@@ -10,8 +10,6 @@ state come out. ``train_step`` is what `train` runs, so a hand-written optax loo
         model, opt_state, loss = step(model, opt_state, data, loss_fn, optimizer)
 """
 
-from __future__ import annotations
-
 import math
 import time
 from collections.abc import Callable

@@ -19,8 +19,6 @@ centre of mass ``(xB, zB)``, ``mB``, ``IBxx``, ``IByy``, ``IBzz``, ``IBxz``; fro
 (x, −y, −z)``, which flips the sign of the ``xz`` products of inertia).
 """
 
-from __future__ import annotations
-
 import math
 
 import jax.numpy as jnp

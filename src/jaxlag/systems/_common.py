@@ -1,7 +1,5 @@
 """Shared plumbing of the ready-made models: parameters with defaults, form checks."""
 
-from __future__ import annotations
-
 import difflib
 import functools
 from collections.abc import Callable, Mapping

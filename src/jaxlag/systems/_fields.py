@@ -1,7 +1,5 @@
 """A particle in a field: the Kepler problem, a charged particle in uniform E and B fields."""
 
-from __future__ import annotations
-
 import jax.numpy as jnp
 
 from .._system import System

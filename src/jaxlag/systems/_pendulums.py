@@ -5,8 +5,6 @@ Angles of planar pendulums are measured from the downward vertical (hanging at r
 the cart-pole's, measured from the upward vertical (upright is 0).
 """
 
-from __future__ import annotations
-
 from collections.abc import Callable, Mapping
 
 import jax.numpy as jnp

@@ -16,8 +16,6 @@ Euler-angle model started at gimbal lock (``θ = 0`` or ``π``) is refused with 
 names it; the ``"quaternion"`` form has no such point.
 """
 
-from __future__ import annotations
-
 import jax.numpy as jnp
 
 from .. import contact

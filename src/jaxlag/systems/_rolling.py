@@ -4,8 +4,6 @@ Rolling without slipping and skating are velocity constraints ``A(q) q̇ = 0`` (
 multipliers ``μ``) except on a straight incline, where rolling integrates to ``s = R θ``.
 """
 
-from __future__ import annotations
-
 import jax.numpy as jnp
 
 from .._system import System

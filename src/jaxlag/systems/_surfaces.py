@@ -6,8 +6,6 @@ constraint imposed by a multiplier (the multiplier is then the constraint force,
 constraint function's gradient: ``M q̈ = F + Jᵀλ``).
 """
 
-from __future__ import annotations
-
 import jax.numpy as jnp
 
 from .._system import System
