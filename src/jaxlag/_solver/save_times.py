@@ -1,0 +1,127 @@
+r"""Saving at given times from inside the solver's state: ``diffrax.SaveAt(ts=ts)`` without its
+run-time checks.
+
+``diffrax.diffeqsolve`` checks ``SaveAt(ts=ts)`` inside the compiled program (``ts`` increasing,
+within ``[t0, t1]``) with ``equinox``'s run-time errors, which are host callbacks even when the
+check passes (and whatever ``throw`` is), and JAX's persistent compilation cache keeps no program
+that holds a host callback. jaxlag checks its save times itself (on the host when they are
+concrete, once in the program when they are traced), so it saves them this way instead:
+
+`SaveTimes` wraps the solver. Its state carries the wrapped solver's state, the index of the
+next save time and a ``(T, ...)`` buffer of saved values. After each step from ``tₙ`` to
+``tₙ₊₁`` it evaluates the step's dense output (the solver's own interpolation, as diffrax's
+saving does) at every save time ``tₙ ≤ t_s ≤ tₙ₊₁`` not saved yet, and stores
+``fn(t_s, y(t_s), args)``. diffrax keeps the solver state of accepted steps only, so a rejected
+step's saves are discarded with it; return the buffer with ``SaveAt(t1=True,
+solver_state=True)`` and read it with `saved_values`. The values are bit-for-bit those of
+``SaveAt(ts=ts)`` (same interpolant, same arithmetic), and the steps are the same (the save
+times do not clip steps). Unreached save times hold ``inf``, as in diffrax.
+
+The save loop inside a step is an ``equinox.internal.while_loop`` of at most ``T`` iterations,
+of the kind diffrax uses for its own saves under the same adjoint (checkpointed under reverse
+mode, a plain ``lax.while_loop`` otherwise).
+"""
+
+from collections.abc import Callable
+
+import diffrax
+import equinox as eqx
+import equinox.internal as eqxi
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int, PyTree
+
+from .forwarding import ForwardingSolver
+
+
+class SavedTimesState(eqx.Module):
+    """The state of `SaveTimes`: the wrapped solver's, the next save index, the buffer."""
+
+    inner: PyTree
+    index: Int[Array, ""]
+    values: PyTree[Array]
+
+
+def _loop_kind(adjoint: diffrax.AbstractAdjoint) -> str:
+    """The kind of ``eqxi.while_loop`` that diffrax uses for its own save loop under ``adjoint``."""
+    if isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint):
+        return "checkpointed"
+    if isinstance(adjoint, diffrax.DirectAdjoint):
+        return "bounded"
+    return "lax"
+
+
+def _save_y(t, y, args):
+    del t, args
+    return y
+
+
+class SaveTimes(ForwardingSolver, diffrax.AbstractWrappedSolver):
+    """``solver``, also saving ``fn(t, y(t), args)`` at the increasing times ``ts`` (see module)."""
+
+    solver: diffrax.AbstractSolver  # pyright: ignore[reportIncompatibleVariableOverride]
+    ts: Float[Array, " T"]
+    fn: Callable = eqx.field(static=True, default=_save_y)
+    loop_kind: str = eqx.field(static=True, default="lax")
+
+    @classmethod
+    def for_adjoint(cls, solver, ts, adjoint, fn: Callable = _save_y) -> "SaveTimes":
+        """`SaveTimes` whose save loop is the kind diffrax would use under ``adjoint``."""
+        return cls(solver, ts, fn, _loop_kind(adjoint))
+
+    def init(self, terms, t0, t1, y0, args):
+        inner = self.solver.init(terms, t0, t1, y0, args)
+        shapes = jax.eval_shape(self.fn, t0, y0, args)
+        count = self.ts.shape[0]
+        values = jax.tree.map(lambda s: jnp.full((count, *s.shape), jnp.inf, s.dtype), shapes)
+        return SavedTimesState(inner, jnp.zeros((), jnp.int32), values)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        y1, y_error, dense_info, inner, result = self.solver.step(
+            terms, t0, t1, y0, args, solver_state.inner, made_jump
+        )
+        interpolation = self.solver.interpolation_cls(t0=t0, t1=t1, **dense_info)
+        ts, count = self.ts, self.ts.shape[0]
+
+        def pending(carry):
+            index, _ = carry
+            return (index < count) & (ts[jnp.minimum(index, count - 1)] <= t1)
+
+        def save(carry):
+            index, values = carry
+            t = ts[index]
+            value = self.fn(t, interpolation.evaluate(t), args)
+            values = jax.tree.map(lambda x, buffer: buffer.at[index].set(x), value, values)
+            return index + 1, values
+
+        index, values = eqxi.while_loop(
+            pending,
+            save,
+            (solver_state.index, solver_state.values),
+            max_steps=count,
+            buffers=lambda carry: carry[1],
+            kind=self.loop_kind,
+            checkpoints=count if self.loop_kind == "checkpointed" else None,
+        )
+        return y1, y_error, dense_info, SavedTimesState(inner, index, values), result
+
+
+def saved_values(
+    solution: diffrax.Solution, ts: Float[Array, " T"], t0, t1, y0, args, fn: Callable = _save_y
+) -> PyTree[Array]:
+    """The values `SaveTimes` saved in ``solution`` (solved with ``SaveAt(t1=True,
+    solver_state=True)``), as diffrax's ``SaveAt(ts=ts)`` would return them: those after the
+    solve's end (an event) are ``inf``; a solve with ``t0 == t1`` saves ``fn(t0, y0, args)`` at
+    every time."""
+    state = solution.solver_state
+    if not isinstance(state, SavedTimesState) or solution.ts is None:
+        raise RuntimeError("jaxlag: the solve did not return the SaveTimes state.")
+    t_end = solution.ts[-1]
+    after = ts > t_end
+
+    def finish(values, start):
+        mask = after.reshape(after.shape + (1,) * (values.ndim - 1))
+        values = jnp.where(mask, jnp.inf, values)
+        return jnp.where(t0 == t1, jnp.broadcast_to(start, values.shape), values)
+
+    return jax.tree.map(finish, state.values, fn(t0, y0, args))
