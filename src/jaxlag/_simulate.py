@@ -3,7 +3,7 @@
 import dataclasses
 import functools as ft
 from collections.abc import Sequence
-from typing import Any, cast
+from typing import cast
 
 import diffrax
 import equinox as eqx
@@ -32,6 +32,7 @@ from ._segment_loop import solve_segments
 from ._simulation_inputs import SimulationInputs
 from ._solver import tangent_solve
 from ._solver.guard import guard, saving_guard_state
+from ._solver.save_times import plain_save_times, solve_saving_times
 from ._solver.step_once import StepOnce
 from ._solver.validation import check_solver_controller
 from ._stabilization import (
@@ -109,15 +110,20 @@ def _integrate(
     carries tangents, which the (guarded) ``controller`` is kept from seeing."""
     if with_tangents:
         controller = tangent_solve.primal_step_sizes(controller)
-    return diffrax.diffeqsolve(
-        term,
-        solver,
-        t0,
-        t1,
-        dt0,
-        y0,
-        args,
-        saveat=saving_guard_state(saveat),
+    saveat = saving_guard_state(saveat)
+    solve = diffrax.diffeqsolve
+    save_times = plain_save_times(saveat)
+    if save_times is not None:  # without diffrax's run-time checks of ts (host callbacks)
+        solve = ft.partial(solve_saving_times, save_times)
+    return solve(
+        terms=term,
+        solver=solver,
+        t0=t0,
+        t1=t1,
+        dt0=dt0,
+        y0=y0,
+        args=args,
+        saveat=saveat,
         stepsize_controller=controller,
         adjoint=adjoint,
         event=event,
@@ -307,10 +313,10 @@ class _Run(AbstractPushingRun):
     """
 
     segmented: bool = eqx.field(static=True)
-    max_steps: Any = eqx.field(static=True)
-    progress_meter: Any
+    max_steps: int | None = eqx.field(static=True)
+    progress_meter: diffrax.AbstractProgressMeter
     check: bool = eqx.field(static=True)
-    tolerance: Any
+    tolerance: RealScalarLike
 
     def may_solve_with_tangents(self, inputs: SimulationInputs) -> bool:
         """Whether `solves_with_tangents` holds for some perturbed inputs (those of the
@@ -599,8 +605,13 @@ def _checked_initial_state(inputs: SimulationInputs, tolerance) -> SimulationInp
 
 
 def _check_residuals(trajectory: Trajectory, residuals):
-    """The reverse pass's residuals, checked as the outputs are (see ``_raise_if_failed``)."""
-    return failures.error_if_failed(cast(failures.Failure, trajectory.failure), residuals)
+    """The reverse pass's residuals, checked as the outputs are (see ``_raise_if_failed``). A
+    concrete record was checked on the host already (``finish``); ``eqx.error_if`` would compile
+    a program of its own even then, one holding a host callback (never cached on disk)."""
+    failure = cast(failures.Failure, trajectory.failure)
+    if is_concrete(failure):
+        return residuals
+    return failures.error_if_failed(failure, residuals)
 
 
 def _raise_if_failed(trajectory: Trajectory, system: System, args) -> Trajectory:

@@ -202,7 +202,10 @@ class PrimalStepSizes(diffrax.AbstractStepSizeController):
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
         owner = getattr(func, "__self__", None)
-        if isinstance(owner, TangentSolver):  # no tangents traced for the initial step size
+        # Wrappers around the TangentSolver (SaveTimes) pass isinstance checks on to it.
+        while isinstance(owner, diffrax.AbstractWrappedSolver) and type(owner) is not TangentSolver:
+            owner = owner.solver
+        if type(owner) is TangentSolver:  # no tangents traced for the initial step size
             primal = owner.primal_func
         else:
             primal = _primal_func(func, jax.tree.map(jnp.zeros_like, y0[1]))
