@@ -125,3 +125,30 @@ def saved_values(
         return jnp.where(t0 == t1, jnp.broadcast_to(start, values.shape), values)
 
     return jax.tree.map(finish, state.values, fn(t0, y0, args))
+
+
+def plain_save_times(saveat: diffrax.SaveAt) -> Float[Array, " T"] | None:
+    """The times of ``saveat`` when it is exactly ``SaveAt(ts=ts)`` (states at ``ts``, nothing
+    else; the controller state may be asked for), else None."""
+    sub = saveat.subs
+    if not isinstance(sub, diffrax.SubSaveAt) or sub.ts is None or sub.t0 or sub.t1 or sub.steps:
+        return None
+    if sub.fn is not diffrax.SubSaveAt(t1=True).fn or saveat.dense or saveat.solver_state or saveat.made_jump:
+        return None
+    return sub.ts
+
+
+def solve_saving_times(ts: Float[Array, " T"], *, solver, saveat: diffrax.SaveAt, adjoint, **kwargs):
+    """``diffrax.diffeqsolve(solver=solver, saveat=saveat, adjoint=adjoint, **kwargs)`` for a
+    ``saveat`` that is ``SaveAt(ts=ts)``, through `SaveTimes`: the returned ``Solution``'s ``ts``
+    and ``ys`` are those ``SaveAt(ts=ts)`` gives (its other fields as asked by ``saveat``, and
+    the solver state)."""
+    wrapped = SaveTimes.for_adjoint(solver, ts, adjoint)
+    within = diffrax.SaveAt(t1=True, solver_state=True, controller_state=saveat.controller_state)
+    solution = diffrax.diffeqsolve(solver=wrapped, saveat=within, adjoint=adjoint, **kwargs)
+    t0, t1, y0, args = kwargs["t0"], kwargs["t1"], kwargs["y0"], kwargs.get("args")
+    values = saved_values(solution, ts, t0, t1, y0, args)
+    if solution.ts is None:
+        raise RuntimeError("jaxlag: the solve did not return its final time.")
+    reached = (ts <= solution.ts[-1]) | (t0 == t1)
+    return eqx.tree_at(lambda s: (s.ts, s.ys), solution, (jnp.where(reached, ts, jnp.inf), values))
