@@ -1,11 +1,14 @@
 """System identification: parameters recovered from simulated observations."""
 
+import contextlib
 import inspect
+import warnings
 
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jaxtyping
 import numpy as np
 import optax
 import optimistix as optx
@@ -31,6 +34,18 @@ def bob(q, qd, args):
 PENDULUM = jl.System(pendulum)
 
 
+@contextlib.contextmanager
+def without_type_checks():
+    """jaxlag's own checks, as a user without a run-time type checker meets them: the suite's
+    checker (tests/conftest.py) would refuse a wrongly typed argument first."""
+    previous = jaxtyping.config.jaxtyping_disable
+    jaxtyping.config.update("jaxtyping_disable", True)
+    try:
+        yield
+    finally:
+        jaxtyping.config.update("jaxtyping_disable", previous)
+
+
 def observe_bob(args, q0=Q0, ts=TS):
     traj = jl.simulate(PENDULUM, q0, QD0, ts, args=args)
     return jax.vmap(lambda q: bob(q, None, args))(traj.q)
@@ -38,9 +53,11 @@ def observe_bob(args, q0=Q0, ts=TS):
 
 def test_pendulum_g_and_l_from_noise_free_bob_positions():
     experiment = jl.Experiment(TS, observe_bob(TRUE), Q0, QD0)
-    result = jl.fit(
-        PENDULUM, START, experiment, observe=bob, transforms={"g": jl.Positive(), "l": jl.Positive()}
-    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", jl.FitWarning)  # a good fit warns about nothing
+        result = jl.fit(
+            PENDULUM, START, experiment, observe=bob, transforms={"g": jl.Positive(), "l": jl.Positive()}
+        )
     assert result.converged
     # Noise-free data and a simulation at rtol 1e-10: recovery limited by the integrator only.
     for name in TRUE:
@@ -67,7 +84,10 @@ def test_noisy_estimates_are_within_three_standard_errors_for_twenty_seeds():
     z_scores = []
     for seed in range(20, 40):
         noisy = clean + sigma * np.random.default_rng(seed).standard_normal(clean.shape)
-        result = jl.fit(PENDULUM, START, jl.Experiment(TS, noisy, Q0, QD0), observe=bob)
+        with warnings.catch_warnings():
+            # No false alarm (outliers, residuals that are not noise) on twenty good fits.
+            warnings.simplefilter("error", jl.FitWarning)
+            result = jl.fit(PENDULUM, START, jl.Experiment(TS, noisy, Q0, QD0), observe=bob)
         for name in TRUE:
             z_scores.append((result.params[name] - TRUE[name]) / result.standard_errors[name])
         # The residual standard deviation estimates the noise level.
@@ -172,7 +192,7 @@ def test_loss_gradient_matches_central_differences():
             {"g": x[0], "l": x[1]},
             experiment,
             observe=bob,
-            adjoint=diffrax.ForwardMode(),
+            simulation=dict(adjoint=diffrax.ForwardMode()),
         )
     )(jnp.array(list(START.values())))
     h = 1e-5
@@ -239,7 +259,7 @@ def test_failures_during_a_fit_are_raised_from_the_host():
             START,
             [jl.Experiment(TS[:5], observed[:5], Q0, QD0), jl.Experiment(TS[:5] * 20, observed[:5], Q0, QD0)],
             observe=bob,
-            max_solver_steps=64,
+            simulation=dict(max_steps=64),
         )
     # A bead that should sit at distance l from the pivot, but the constraint |x| = −l has no
     # solution for l > 0: the projection of the initial state fails.
@@ -346,33 +366,105 @@ def test_three_shooting_segments_as_before_and_periodic_segment_states():
 
 def test_bad_option_objects():
     experiment = jl.Experiment(TS, observe_bob(TRUE), Q0, QD0)
-    with pytest.raises(TypeError, match=r"not the string 'gauss_newton'.*optx\.GaussNewton\(rtol=1e-10"):
-        jl.fit(PENDULUM, START, experiment, observe=bob, optimizer="gauss_newton")
-    with pytest.raises(TypeError, match="Gauss–Newton-type solver.*got BestSoFarLeastSquares"):
+    with without_type_checks():
+        with pytest.raises(TypeError, match=r"not the string 'gauss_newton'.*optx\.GaussNewton\(rtol=1e-10"):
+            jl.fit(PENDULUM, START, experiment, observe=bob, optimizer="gauss_newton")
+        with pytest.raises(TypeError, match="Gauss–Newton-type solver.*got BestSoFarLeastSquares"):
+            jl.fit(
+                PENDULUM,
+                START,
+                experiment,
+                observe=bob,
+                optimizer=optx.BestSoFarLeastSquares(optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)),
+            )
+        with pytest.raises(TypeError, match="optax.GradientTransformation.*got BFGS"):
+            jl.fit(PENDULUM, START, experiment, observe=bob, optimizer=optx.BFGS(rtol=1e-8, atol=1e-8))
+        with pytest.raises(TypeError, match="method"):
+            jl.fit(PENDULUM, START, experiment, observe=bob, method="gauss_newton")
+        with pytest.raises(ValueError, match=r"Shooting\(segments=0\).*at least 1"):
+            jl.Shooting(segments=0)
+        with pytest.raises(TypeError, match=r"Shooting\(segments=\.\.\.\) must be an int"):
+            jl.Shooting(segments=2.0)
+        with pytest.raises(ValueError, match=r"continuity_weight=0\.0.*must be positive"):
+            jl.Shooting(continuity_weight=0.0)
+        with pytest.raises(TypeError, match=r"shooting must be a jl\.Shooting"):
+            jl.fit(PENDULUM, START, experiment, observe=bob, shooting=3)
+        with pytest.raises(ValueError, match=r"Shooting\(states=\(q, qd\)\) must have shape \(1, 3, 1\)"):
+            jl.fit(
+                PENDULUM,
+                START,
+                experiment,
+                observe=bob,
+                shooting=jl.Shooting(segments=3, states=(np.zeros((1, 2, 1)), np.zeros((1, 2, 1)))),
+            )
+
+
+def test_simulation_options_are_one_object_forwarded_to_simulate():
+    """``simulation=`` takes jl.simulate's options as one dict (a jl.SimulateOptions), forwarded
+    untouched; the fit's own ``max_steps`` stays the optimizer's; MultiStart forwards the same
+    object. Before: six keywords of their own (``max_solver_steps`` for simulate's max_steps)."""
+    parameters = inspect.signature(jl.fit).parameters
+    named = [p for p in parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
+    assert len(named) == 13 and "simulation" in parameters and "solver" not in parameters
+    assert parameters["simulation"].default == {}  # simulate's own defaults
+    experiment = jl.Experiment(TS, observe_bob(TRUE), Q0, QD0)
+    options = jl.SimulateOptions(solver=diffrax.Dopri8(), max_steps=4096)
+    result = jl.fit(PENDULUM, START, experiment, observe=bob, simulation=options, max_steps=30)
+    assert result.converged and abs(result.params["g"] / TRUE["g"] - 1) < 1e-6
+    # Simulate's max_steps reaches every simulation, of every start of a MultiStart.
+    short = [jl.Experiment(TS[:5] * 20, observe_bob(TRUE)[:5], Q0, QD0)]
+    with pytest.raises(jl.SimulationError, match=r"experiment 0, at parameters .*max_steps"):
+        jl.fit(PENDULUM, START, short, observe=bob, simulation=dict(max_steps=64))
+    starts = jl.MultiStart({"g": [11.0, 9.0], "l": [0.7, 0.9]})
+    with pytest.raises(ValueError, match=r"MultiStart: every one of the 2 fits failed.*max_steps"):
+        jl.fit(PENDULUM, starts, short, observe=bob, simulation=dict(max_steps=64))
+    # Names are checked; options the fit sets itself are refused with the reason.
+    with pytest.raises(
+        TypeError,
+        match=r"jl.fit\(simulation=...\): simulate\(\) got an unexpected keyword "
+        r"argument 'max_solver_steps'",
+    ):
+        jl.fit(PENDULUM, START, experiment, observe=bob, simulation=dict(max_solver_steps=64))
+    with pytest.raises(
+        ValueError,
+        match=r"sets 'saveat', 'throw' itself: saveat: the simulation saves at "
+        r"each experiment's save times ts.*; throw: the fit raises a failed simulation itself",
+    ):
         jl.fit(
             PENDULUM,
             START,
             experiment,
             observe=bob,
-            optimizer=optx.BestSoFarLeastSquares(optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)),
+            simulation=dict(saveat=diffrax.SaveAt(t1=True), throw=False),
         )
-    with pytest.raises(TypeError, match="optax.GradientTransformation.*got BFGS"):
-        jl.fit(PENDULUM, START, experiment, observe=bob, optimizer=optx.BFGS(rtol=1e-8, atol=1e-8))
-    with pytest.raises(TypeError, match="method"):
-        jl.fit(PENDULUM, START, experiment, observe=bob, method="gauss_newton")
-    with pytest.raises(ValueError, match=r"Shooting\(segments=0\).*at least 1"):
-        jl.Shooting(segments=0)
-    with pytest.raises(TypeError, match=r"Shooting\(segments=\.\.\.\) must be an int"):
-        jl.Shooting(segments=2.0)
-    with pytest.raises(ValueError, match=r"continuity_weight=0\.0.*must be positive"):
-        jl.Shooting(continuity_weight=0.0)
-    with pytest.raises(TypeError, match=r"shooting must be a jl\.Shooting"):
-        jl.fit(PENDULUM, START, experiment, observe=bob, shooting=3)
-    with pytest.raises(ValueError, match=r"Shooting\(states=\(q, qd\)\) must have shape \(1, 3, 1\)"):
-        jl.fit(
-            PENDULUM,
-            START,
-            experiment,
-            observe=bob,
-            shooting=jl.Shooting(segments=3, states=(np.zeros((1, 2, 1)), np.zeros((1, 2, 1)))),
-        )
+    with pytest.raises(ValueError, match=r"'adjoint' itself: adjoint: the fit differentiates the simulation"):
+        jl.fit(PENDULUM, START, experiment, observe=bob, simulation=dict(adjoint=diffrax.ForwardMode()))
+
+
+def test_old_simulation_keywords_are_deprecated_and_give_the_same_fit():
+    experiment = jl.Experiment(TS, observe_bob(TRUE), Q0, QD0)
+    new = jl.fit(
+        PENDULUM, START, experiment, observe=bob, simulation=dict(solver=diffrax.Dopri8(), max_steps=4096)
+    )
+    with pytest.warns(DeprecationWarning) as caught:
+        old = jl.fit(PENDULUM, START, experiment, observe=bob, solver=diffrax.Dopri8(), max_solver_steps=4096)
+    assert [str(w.message) for w in caught] == [
+        "jl.fit(solver=...) is deprecated and will be removed in the next release: pass "
+        "simulation=dict(solver=...) (the options of jl.simulate, forwarded to it untouched).",
+        "jl.fit(max_solver_steps=...) is deprecated and will be removed in the next release: pass "
+        "simulation=dict(max_steps=...) (the options of jl.simulate, forwarded to it untouched).",
+    ]
+    np.testing.assert_array_equal(old.loss_history, new.loss_history)
+    with pytest.raises(
+        TypeError, match=r"max_solver_steps= and simulation=\{'max_steps': ...\} give the same"
+    ):
+        jl.fit(PENDULUM, START, experiment, observe=bob, max_solver_steps=64, simulation=dict(max_steps=64))
+    with pytest.warns(
+        DeprecationWarning,
+        match=r"least_squares_loss\(adjoint=...\) is deprecated.*"
+        r"simulation=dict\(adjoint=...\)",
+    ):
+        loss = jl.least_squares_loss(PENDULUM, START, experiment, observe=bob, adjoint=diffrax.ForwardMode())
+    np.testing.assert_allclose(
+        loss, jl.least_squares_loss(PENDULUM, START, experiment, observe=bob), rtol=1e-12
+    )

@@ -72,6 +72,7 @@ from ._events import (
 from ._events import (
     multiplier_limit as multiplier_limit,
 )
+from ._fit.combinations import IdentifiableCombination as IdentifiableCombination
 from ._fit.data import Experiment as Experiment
 from ._fit.fit import fit as fit
 from ._fit.fit import least_squares_loss as least_squares_loss

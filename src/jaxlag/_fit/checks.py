@@ -1,12 +1,48 @@
 """Checks of [`fit`][jaxlag.fit]'s arguments, on the host before anything compiles: each raises
 an error that names what is wrong and how to fix it."""
 
+import warnings
+from collections.abc import Mapping
+from typing import Any, cast
+
 import jax
 import numpy as np
 import optax
 import optimistix as optx
 
+from .._options import SimulateOptions, check_option_names
 from .options import Bounded, Identity, Positive, Shooting
+
+#: The options of jl.simulate that the fit sets itself, and why a user's value makes no sense.
+FIT_CONTROLS = {
+    "t0": "each experiment is integrated over its own save times ts",
+    "t1": "each experiment is integrated over its own save times ts",
+    "saveat": "the simulation saves at each experiment's save times ts (and the shooting segments' ends)",
+    "adjoint": (
+        "the fit differentiates the simulation itself: forward mode (diffrax.ForwardMode) for the "
+        "Jacobian of the least-squares solvers, jl.ForwardSensitivities() for optax "
+        "(jl.least_squares_loss takes an adjoint)"
+    ),
+    "throw": "the fit raises a failed simulation itself, naming the parameters being tried",
+    "checks": (
+        "the fit checks its data once, on the host, and projects every initial state onto the constraints"
+    ),
+    "event": (
+        "a terminating diffrax event would end the simulation before the last observation "
+        "(conditions that switch the motion go in events=jl.Events(...))"
+    ),
+    "progress_meter": "one meter per simulation; jl.fit(progress=True) shows the fit's progress",
+}
+
+#: The keywords of jl.fit that simulation= replaces (deprecated), and their SimulateOptions names.
+DEPRECATED_SIMULATION_KEYWORDS = {
+    "solver": "solver",
+    "stepsize_controller": "stepsize_controller",
+    "dt0": "dt0",
+    "max_solver_steps": "max_steps",
+    "projection": "projection",
+    "baumgarte": "baumgarte",
+}
 
 
 def check_options(transforms, params, shooting) -> None:
@@ -107,3 +143,50 @@ def check_optimizer(optimizer) -> bool:
         f"optimizer must be an optimistix least-squares solver, {supported}, or an "
         f"optax.GradientTransformation (gradient descent on the loss); got {type(optimizer).__name__}."
     )
+
+
+def simulation_options(
+    simulation: Mapping[str, Any],
+    deprecated: Mapping[str, Any],
+    caller: str,
+    controlled: Mapping[str, str],
+    renamed: Mapping[str, str] = DEPRECATED_SIMULATION_KEYWORDS,
+) -> SimulateOptions:
+    """The options of [`simulate`][jaxlag.simulate] that ``caller`` forwards to it: ``simulation``
+    (names checked, those in ``controlled`` refused with the reason) merged with the deprecated
+    keywords ``deprecated`` (a ``DeprecationWarning`` each, naming the new spelling; ``renamed``
+    maps each to its option)."""
+    if not isinstance(simulation, Mapping):
+        raise TypeError(
+            f"{caller}(simulation=...) takes a dict of jl.simulate's options (a jl.SimulateOptions), "
+            f"e.g. simulation=dict(solver=diffrax.Dopri8(), max_steps=4096); got {type(simulation).__name__}."
+        )
+    try:
+        check_option_names(simulation, "simulate")
+    except TypeError as error:
+        raise TypeError(f"{caller}(simulation=...): {error} Its keys are jl.simulate's options.") from None
+    refused = [name for name in simulation if name in controlled]
+    if refused:
+        raise ValueError(
+            f"{caller}(simulation=...) sets {', '.join(map(repr, refused))} itself: "
+            + "; ".join(f"{name}: {controlled[name]}" for name in refused)
+            + "."
+        )
+    options = dict(simulation)
+    for keyword, value in deprecated.items():
+        if keyword not in renamed:
+            raise TypeError(f"{caller}() got an unexpected keyword argument {keyword!r}.")
+        name = renamed[keyword]
+        if name in options:
+            raise TypeError(
+                f"{caller}(): {keyword}= and simulation={{{name!r}: ...}} give the same option twice."
+            )
+        spelling = f"simulation=dict({name}=...)"
+        warnings.warn(
+            f"{caller}({keyword}=...) is deprecated and will be removed in the next release: "
+            f"pass {spelling} (the options of jl.simulate, forwarded to it untouched).",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        options[name] = value
+    return cast(SimulateOptions, options)

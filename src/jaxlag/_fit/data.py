@@ -130,3 +130,10 @@ def segment_grid(ts, segments: int):
     m = (t - 1) // segments
     index = np.arange(segments)[:, None] * m + np.arange(m + 1)[None, :]
     return np.asarray(ts)[:, index], index[:, 0]
+
+
+def save_times(ts_seg) -> np.ndarray:
+    """The save times (E, T) back from the segments' (E, S, m + 1) of `segment_grid`."""
+    ts_seg = np.asarray(ts_seg)
+    rest = ts_seg[:, 1:, 1:].reshape(ts_seg.shape[0], -1)
+    return np.concatenate([ts_seg[:, 0], rest], axis=1)

@@ -49,24 +49,54 @@ import numpy as np
 import optax
 import optimistix as optx
 from jaxtyping import ArrayLike, Bool
+from typing_extensions import TypedDict, Unpack
 
 from .. import _errors as failures
 from .._adjoint import ForwardSensitivities
 from .._conventions import wrap_state_function
 from .._custom_types import Scalar
 from .._misc import is_concrete
+from .._options import SimulateOptions
 from .._stabilization import Baumgarte, Projection
 from .._system import System
-from .checks import check_observations, check_optimizer, check_options, check_starts, initial_mask
-from .data import Data, Experiment, segment_grid, stack
+from .checks import (
+    DEPRECATED_SIMULATION_KEYWORDS,
+    FIT_CONTROLS,
+    check_observations,
+    check_optimizer,
+    check_options,
+    check_starts,
+    initial_mask,
+    simulation_options,
+)
+from .data import Data, Experiment, save_times, segment_grid, stack
+from .diagnostics import gross_outliers
 from .loops import least_squares_loop, optax_loop
-from .model import Model, ParamSpec, Problem, guess_states, unconstrained
+from .model import Model, ParamSpec, Problem, guess_states, residuals_and_jacobian, unconstrained
 from .options import Bounded, FitWarning, MultiStart, Positive, Shooting
 from .statistics import FitResult, fit_result
 
 
 def _observe_coordinates(q, qd):
     return q
+
+
+class DeprecatedSimulationKeywords(TypedDict, total=False):
+    """The keywords of `fit` that ``simulation=`` replaces (deprecated, removed in the next
+    release)."""
+
+    solver: diffrax.AbstractSolver
+    stepsize_controller: diffrax.AbstractStepSizeController
+    dt0: float | None
+    max_solver_steps: int
+    projection: Projection | None
+    baumgarte: Baumgarte | None
+
+
+class DeprecatedLossKeywords(DeprecatedSimulationKeywords, total=False):
+    """The keywords of `least_squares_loss` that ``simulation=`` replaces (deprecated)."""
+
+    adjoint: diffrax.AbstractAdjoint | ForwardSensitivities
 
 
 def fit(
@@ -84,13 +114,9 @@ def fit(
     noise_std: float | None = None,
     estimate_initial_state: bool | tuple[Bool[ArrayLike, " n"], Bool[ArrayLike, " n"]] = False,
     shooting: Shooting = Shooting(),
-    solver: diffrax.AbstractSolver = diffrax.Tsit5(),
-    stepsize_controller: diffrax.AbstractStepSizeController = diffrax.PIDController(rtol=1e-10, atol=1e-10),
-    dt0: float | None = None,
-    max_solver_steps: int = 16384,
-    projection: Projection | None = Projection(),
-    baumgarte: Baumgarte | None = None,
+    simulation: SimulateOptions = SimulateOptions(),
     progress: bool = False,
+    **deprecated: Unpack[DeprecatedSimulationKeywords],
 ) -> FitResult:
     """Fit ``params`` of ``system`` to ``experiments`` by least squares.
 
@@ -121,35 +147,43 @@ def fit(
       jnp.array([False]))``: θ0 free, θ̇0 known.
     - ``shooting``: a `Shooting` (segments, continuity weight, starting guesses of the
       segment states, periodic coordinates); the default ``Shooting()`` is single shooting.
-    - ``solver``, ``stepsize_controller``, ``dt0``, ``projection``, ``baumgarte``: passed to
-      [`simulate`][jaxlag.simulate]; ``max_solver_steps`` is its ``max_steps`` (the most integrator
-      steps of one simulation).
+    - ``simulation``: the options of [`simulate`][jaxlag.simulate] for every simulation of the
+      fit, a [`SimulateOptions`][jaxlag.SimulateOptions] (a plain dict works:
+      ``simulation=dict(solver=diffrax.Dopri8(), max_steps=4096)``), forwarded untouched; one
+      left out takes ``simulate``'s default. Its ``max_steps`` is the most integrator steps of
+      one simulation; the fit's own ``max_steps`` is the optimizer's. The options the fit sets
+      itself (``t0``, ``t1``, ``saveat``, ``adjoint``, ``throw``, ``checks``, ``event``,
+      ``progress_meter``) are refused with the reason (``ValueError``).
     - ``progress``: show a tqdm progress bar (``pip install tqdm``).
+    - ``solver``, ``stepsize_controller``, ``dt0``, ``max_solver_steps``, ``projection``,
+      ``baumgarte``: deprecated (a ``DeprecationWarning``), removed in the next release; they are
+      ``simulation``'s entries (``max_solver_steps`` is its ``max_steps``).
 
-    Returns a `FitResult`.
+    Returns a `FitResult`; ``print(result)`` shows its `FitResult.summary`.
     """
+    simulation = simulation_options(simulation, deprecated, "jl.fit", FIT_CONTROLS)
     if isinstance(params, MultiStart):
         options = dict(
-            observe=observe, args=args, transforms=transforms, optimizer=optimizer,
-            max_steps=max_steps, noise_std=noise_std, estimate_initial_state=estimate_initial_state,
-            shooting=shooting, solver=solver, stepsize_controller=stepsize_controller, dt0=dt0,
-            max_solver_steps=max_solver_steps, projection=projection, baumgarte=baumgarte,
-            progress=progress,
+            observe=observe, args=args, transforms=transforms, optimizer=optimizer, max_steps=max_steps,
+            noise_std=noise_std, estimate_initial_state=estimate_initial_state, shooting=shooting,
+            simulation=simulation, progress=progress,
         )  # fmt: skip
         return _multi_start(system, params, experiments, options)
     check_optimizer(optimizer)
-    simulation = dict(
-        solver=solver, stepsize_controller=stepsize_controller, max_steps=int(max_solver_steps), dt0=dt0,
-        projection=projection, baumgarte=baumgarte,
-    )  # fmt: skip
     problem = _problem(
         system, params, experiments, observe, args, dict(transforms or {}), noise_std, estimate_initial_state,
         shooting, simulation,
     )  # fmt: skip
-    if isinstance(optimizer, optx.AbstractGaussNewton):
-        search = least_squares_loop(optimizer, problem, max_steps, progress)
-    else:
-        search = optax_loop(cast(optax.GradientTransformation, optimizer), problem, max_steps, progress)
+    try:
+        if isinstance(optimizer, optx.AbstractGaussNewton):
+            search = least_squares_loop(optimizer, problem, max_steps, progress)
+        else:
+            search = optax_loop(cast(optax.GradientTransformation, optimizer), problem, max_steps, progress)
+    except (FloatingPointError, failures.SimulationError) as error:
+        outliers = _outliers_at_start(problem)
+        if outliers is None:
+            raise
+        raise type(error)(f"{error}\nAt the starting parameters, {outliers}.") from error
     return fit_result(problem, search, noise_std)
 
 
@@ -175,8 +209,8 @@ def _problem(
         segments=int(shooting.segments),
         estimate_initial_state=mask is not None or estimate is True,
         initial_mask=mask,
+        simulation=dict(simulation),
         periodic=shooting.periodic_coordinates,
-        **simulation,
     )
     ts_seg, starts = segment_grid(batch.ts, model.segments)
     segment_states = shooting.states
@@ -199,7 +233,7 @@ def _problem(
 
 def _multi_start(system, starts: MultiStart, experiments, options) -> FitResult:
     """`fit` from each start of ``starts`` in turn; the best result, with all of them."""
-    count = next(iter(np.shape(v)[0] for v in starts.starts.values()))
+    count = starts.count
     results, losses, error = [], [], None
     for k in range(count):
         start = {name: np.asarray(value)[k] for name, value in starts.starts.items()}
@@ -235,6 +269,18 @@ def _multi_start(system, starts: MultiStart, experiments, options) -> FitResult:
     )
 
 
+def _outliers_at_start(problem: Problem) -> str | None:
+    """The gross outliers of the residuals at the starting point (`gross_outliers`), for the
+    message of a fit that failed; None when there are none or the residuals cannot be had."""
+    try:
+        r = residuals_and_jacobian(problem.model, problem.free, problem.data, problem.fixed_states).residuals
+    except (FloatingPointError, ValueError, failures.SimulationError):
+        return None
+    data = problem.data
+    observations, ts = np.asarray(data.observations), save_times(data.ts_seg)
+    return gross_outliers(np.asarray(r), observations, float(data.noise), ts)
+
+
 def least_squares_loss(
     system: System,
     params: dict[str, ArrayLike],
@@ -243,39 +289,27 @@ def least_squares_loss(
     observe: Callable | None = None,
     args: dict | None = None,
     noise_std: float = 1.0,
-    solver: diffrax.AbstractSolver = diffrax.Tsit5(),
-    stepsize_controller: diffrax.AbstractStepSizeController = diffrax.PIDController(rtol=1e-10, atol=1e-10),
-    dt0: float | None = None,
-    max_solver_steps: int = 2**16,
-    adjoint: diffrax.AbstractAdjoint | ForwardSensitivities = ForwardSensitivities(),
-    projection: Projection | None = Projection(),
-    baumgarte: Baumgarte | None = None,
+    simulation: SimulateOptions = SimulateOptions(),
+    **deprecated: Unpack[DeprecatedLossKeywords],
 ) -> Scalar:
     """The fit's loss ``½ Σ r²`` at physical ``params`` (single shooting, known initial states).
 
     Differentiable with ``jax.grad`` (the default ``adjoint``, as in [`simulate`][jaxlag.simulate])
-    and ``jax.jacfwd`` (pass ``adjoint=diffrax.ForwardMode()``); useful to check gradients or to
-    drive your own optimizer. ``solver``, ``stepsize_controller``, ``dt0``, ``adjoint``,
-    ``projection`` and ``baumgarte`` are passed to [`simulate`][jaxlag.simulate], and
-    ``max_solver_steps`` as its ``max_steps``.
+    and ``jax.jacfwd`` (pass ``simulation=dict(adjoint=diffrax.ForwardMode())``); useful to check
+    gradients or to drive your own optimizer. ``simulation``: the options of
+    [`simulate`][jaxlag.simulate], as in [`fit`][jaxlag.fit], forwarded untouched, ``adjoint``
+    included. The keywords ``solver``, ``stepsize_controller``, ``dt0``, ``max_solver_steps``
+    (``simulation``'s ``max_steps``), ``adjoint``, ``projection`` and ``baumgarte`` are
+    deprecated (a ``DeprecationWarning``), removed in the next release.
     """
+    controlled = {k: v for k, v in FIT_CONTROLS.items() if k != "adjoint"}
+    renamed = {**DEPRECATED_SIMULATION_KEYWORDS, "adjoint": "adjoint"}
+    options = dict(simulation_options(simulation, deprecated, "jl.least_squares_loss", controlled, renamed))
+    adjoint = options.pop("adjoint", ForwardSensitivities())
     batch = stack(experiments)
     observe = wrap_state_function(observe or _observe_coordinates, "observation function")
     spec = ParamSpec(tuple(params), tuple(jnp.shape(v) for v in params.values()))
-    model = Model(
-        system,
-        observe,
-        {},
-        spec,
-        segments=1,
-        estimate_initial_state=False,
-        solver=solver,
-        stepsize_controller=stepsize_controller,
-        max_steps=int(max_solver_steps),
-        dt0=dt0,
-        projection=projection,
-        baumgarte=baumgarte,
-    )
+    model = Model(system, observe, {}, spec, segments=1, estimate_initial_state=False, simulation=options)
     data = Data(dict(args or {}), batch.observations, noise_std, batch.ts[:, None, :], 0.0)
     if is_concrete(batch.observations) and not np.any(np.isfinite(np.asarray(batch.observations))):
         raise ValueError(

@@ -65,35 +65,17 @@ class Model(eqx.Module):
     spec: ParamSpec
     segments: int = eqx.field(static=True)
     estimate_initial_state: bool = eqx.field(static=True)
-    # The options of the simulation, passed to jl.simulate. Module fields (not static): under
-    # the fit's filter_jit their Python numbers are part of the cache key, so a second fit with
-    # equal options reuses the compiled programs, and array-valued options are traced.
-    solver: diffrax.AbstractSolver
-    stepsize_controller: diffrax.AbstractStepSizeController
-    max_steps: int = eqx.field(static=True)
-    dt0: Any = None
-    projection: Any = None
-    baumgarte: Any = None
+    # The options of jl.simulate (a SimulateOptions), forwarded untouched. Under the fit's
+    # filter_jit their Python numbers are part of the cache key, so a second fit with equal
+    # options reuses the compiled programs, and array-valued options are traced.
+    simulation: dict[str, Any]
     periodic: tuple = eqx.field(static=True, default=())
     # Partial estimation: the indices of the estimated entries of (q0, qd0); None = all.
     initial_mask: tuple[tuple[int, ...], tuple[int, ...]] | None = eqx.field(static=True, default=None)
 
     def simulate(self, q0, qd0, ts, args, **kwargs):
         """[`simulate`][jaxlag.simulate] of the system with the fit's simulation options."""
-        return simulate(
-            self.system,
-            q0,
-            qd0,
-            ts,
-            args=args,
-            solver=self.solver,
-            stepsize_controller=self.stepsize_controller,
-            dt0=self.dt0,
-            max_steps=self.max_steps,
-            projection=self.projection,
-            baumgarte=self.baumgarte,
-            **kwargs,
-        )
+        return simulate(self.system, q0, qd0, ts, args=args, **self.simulation, **kwargs)
 
     def physical(self, flat):
         """``θ = to_physical(u)`` of each parameter, from the flat unconstrained ``u``."""

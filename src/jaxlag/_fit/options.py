@@ -3,6 +3,7 @@
 and `FitWarning`."""
 
 import operator
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -14,7 +15,7 @@ from .._custom_types import RealScalarLike
 from .._misc import is_concrete
 
 #: ``q`` or ``q̇`` of every shooting segment's starting state, one row per experiment and segment.
-SegmentStates = Float[Array, "experiments segments n"]
+SegmentStates = Float[np.ndarray | Array, "experiments segments n"]
 
 
 # ----------------------------------------------------------------------------- reparameterization
@@ -39,13 +40,32 @@ class Positive(eqx.Module):
 
 
 class Bounded(eqx.Module):
-    """Parameter in ``(lower, upper)``: ``θ = lower + (upper − lower) sigmoid(u)``."""
+    """Parameter in ``(lower, upper)``: ``θ = lower + (upper − lower) sigmoid(u)``.
 
-    lower: float
-    upper: float
+    The bounds must be finite with ``lower < upper`` (checked when constructed, also inside
+    ``jit``, where Python numbers are known); for ``(0, ∞)`` use `Positive`."""
+
+    lower: RealScalarLike
+    upper: RealScalarLike
+
+    def __check_init__(self):
+        if not is_concrete((self.lower, self.upper)):
+            return  # traced bounds: the caller's to check
+        lower, upper = np.asarray(self.lower), np.asarray(self.upper)
+        if not (np.all(np.isfinite(lower)) and np.all(np.isfinite(upper))):
+            raise ValueError(
+                f"Bounded(lower={self.lower}, upper={self.upper}): both bounds must be finite; "
+                "for a parameter in (0, inf) use jl.Positive()."
+            )
+        if not np.all(lower < upper):
+            swapped = f"; did you mean Bounded({self.upper}, {self.lower})?" if np.all(lower > upper) else "."
+            raise ValueError(
+                f"Bounded(lower={self.lower}, upper={self.upper}): the lower bound must be below the "
+                f"upper bound (an open interval (lower, upper) with lower < upper){swapped}"
+            )
 
     def to_physical(self, u: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
-        return self.lower + (self.upper - self.lower) * jax.nn.sigmoid(u)
+        return jnp.asarray(self.lower + (self.upper - self.lower) * jax.nn.sigmoid(u))
 
     def to_unconstrained(self, p: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
         s = (p - self.lower) / (self.upper - self.lower)
@@ -59,6 +79,13 @@ def _index_tuple(indices) -> tuple:
 
 def _state_pair(states):
     return None if states is None else tuple(states)
+
+
+def _as_starts(starts: dict[str, Any]) -> dict[str, Any]:
+    """Lists and numbers as NumPy arrays of JAX's default float type (JAX arrays, traced ones
+    included, stay)."""
+    real = jax.dtypes.canonicalize_dtype(float)
+    return {k: v if isinstance(v, jax.Array) else np.asarray(v, real) for k, v in starts.items()}
 
 
 class Shooting(eqx.Module):
@@ -112,15 +139,35 @@ class MultiStart(eqx.Module):
     (diverges or its simulation fails) gets loss ``inf``; only the best fit's warnings are issued.
     """
 
-    starts: dict[str, Float[ArrayLike, " starts *shape"]]
+    starts: dict[str, Float[np.ndarray | Array, " starts *shape"]] = eqx.field(converter=_as_starts)
 
     def __check_init__(self):
+        if not self.starts:
+            raise ValueError("MultiStart needs at least one parameter: got an empty dict.")
         sizes = {k: np.shape(v)[0] if np.ndim(v) else None for k, v in self.starts.items()}
-        if not sizes or None in sizes.values() or len(set(sizes.values())) != 1:
+        scalar = [k for k, size in sizes.items() if size is None]
+        if scalar:
+            raise ValueError(
+                f"MultiStart needs every parameter with a leading axis, one entry per start; "
+                f"{', '.join(scalar)} {'is a scalar' if len(scalar) == 1 else 'are scalars'} (give "
+                f"[{scalar[0]}_1, {scalar[0]}_2, ...])."
+            )
+        if len(set(sizes.values())) != 1:
+            counts = ", ".join(f"{k}: {size}" for k, size in sizes.items())
             raise ValueError(
                 "MultiStart needs every parameter with the same leading axis (one entry per start); "
-                f"got leading sizes {sizes}."
+                f"got leading sizes {counts}."
             )
+        if next(iter(sizes.values())) == 0:
+            raise ValueError(
+                "MultiStart has zero starting points: every parameter's leading axis has length 0 "
+                f"({', '.join(sizes)}); give at least one start."
+            )
+
+    @property
+    def count(self) -> int:
+        """The number of starts K."""
+        return int(np.shape(next(iter(self.starts.values())))[0])
 
 
 class FitWarning(UserWarning):

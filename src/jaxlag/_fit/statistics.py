@@ -18,17 +18,22 @@ from jaxtyping import Array, Float
 
 from .. import _compile as compilation
 from .._custom_types import Scalar
+from .combinations import IdentifiableCombination, identifiable_combinations
+from .data import save_times
+from .diagnostics import gross_outliers, misfit
 from .loops import Search
 from .model import Problem, residuals_and_jacobian
 from .options import Bounded, FitWarning, SegmentStates
+from .summary import summary_text
 
 
 class FitResult(eqx.Module):
     """Outcome of `fit`.
 
     ``params``: fitted parameters (physical values, same structure as the initial guess).
-    ``standard_errors``: same structure; ``covariance``: (p, p) over ``jax.flatten_util.ravel_pytree``
-    order of ``params``. ``initial_states``: fitted ``(q0, qd0)`` per experiment when estimated.
+    ``standard_errors``: same structure; ``covariance``: (p, p) over the free scalars named in
+    ``names`` (the parameters in the order they were given, ``"k[1]"`` for an entry of an array
+    parameter). ``initial_states``: fitted ``(q0, qd0)`` per experiment when estimated.
     ``loss_history``: ``ℓ`` after each optimizer step (index 0 is the starting point).
     ``segment_states``: ``(q, qd)`` of shape (E, S, n), the state each shooting segment starts from.
 
@@ -41,24 +46,36 @@ class FitResult(eqx.Module):
       for those parameters.
     - ``undetermined``, ``insensitive``: the names of those parameters (``"k[1]"`` for an
       entry of an array parameter; estimated initial states as ``"q0[0] of experiment 0"``).
+    - ``identifiable``: the combinations of undetermined parameters that the data do
+      determine, each an [`IdentifiableCombination`][jaxlag.IdentifiableCombination]: a
+      monomial ``Π θ_j^{a_j}`` (``g^1 · l^-1`` for a pendulum observed through ``θ``) with its
+      value and standard error; empty when every parameter is determined.
     - ``at_bound``: parameters that end within ``1e-6 (upper − lower)`` of a `Bounded`
       transform's bound.
     - ``residual_std``: the standard deviation of the residuals, ``√(Σ r²/(N − p))`` in the
       units of the observations. ``reduced_chi2``: ``Σ (r/σ)²/(N − p)`` when ``noise_std`` is
-      given (else None); about ``1 ± √(2/(N − p))`` for a good fit.
+      given (else None); about ``1 ± √(2/(N − p))`` for a good fit. ``chi2``: ``Σ (r/σ)²``
+      (``σ = 1`` without ``noise_std``, then the sum of squared residuals), ``dof``: ``N − p``
+      (``N`` finite observations, ``p`` free scalars), ``noise_std``: the one given.
     - ``warnings``: the texts of the `FitWarning` s the fit issued.
     - ``initial_state_errors``: standard errors of the estimated initial states (same
       structure as ``initial_states``), None when they are not estimated.
     - ``converged``: the optimizer's stopping criterion was met; it says nothing about the
       items above (a fit can converge to a local minimum, or to one point of a flat valley).
+
+    ``str(result)`` (``print(result)``) is `summary`: the parameters with their standard
+    errors, the strong correlations, the identifiable combinations, the goodness of fit and
+    the warnings; ``repr`` is equinox's.
     """
 
-    params: dict[str, Array]
-    standard_errors: dict[str, Array]
+    params: dict[str, Float[np.ndarray | Array, "..."]]
+    standard_errors: dict[str, Float[Array, "..."]]
     covariance: Float[Array, "p p"]
     residual_std: Scalar
     loss_history: Float[np.ndarray, " steps"]
-    initial_states: tuple[Float[Array, "experiments n"], Float[Array, "experiments n"]]
+    initial_states: tuple[
+        Float[np.ndarray | Array, "experiments n"], Float[np.ndarray | Array, "experiments n"]
+    ]
     num_steps: int
     converged: bool
     segment_states: tuple[SegmentStates, SegmentStates] | None = None
@@ -70,7 +87,22 @@ class FitResult(eqx.Module):
     warnings: tuple[str, ...] = ()
     initial_state_errors: tuple[Float[Array, "experiments n"], Float[Array, "experiments n"]] | None = None
     start_losses: Float[np.ndarray, " starts"] | None = None
-    start_params: dict[str, Array] | None = None
+    start_params: dict[str, Float[Array, "starts ..."]] | None = None
+    identifiable: tuple[IdentifiableCombination, ...] = ()
+    chi2: float | None = None
+    dof: int | None = None
+    noise_std: float | None = None
+    names: tuple[str, ...] = ()
+
+    def summary(self, min_correlation: float = 0.1) -> str:
+        """A readable report, as statsmodels' and lmfit's: each parameter's value ± standard
+        error, the correlations with ``|ρ| ≥ min_correlation``, the identifiable combinations,
+        ``χ²``, the residual standard deviation, ``dof``, whether the optimizer converged and
+        in how many steps, the starts of a `MultiStart`, and the warnings."""
+        return summary_text(self, min_correlation)
+
+    def __str__(self) -> str:
+        return self.summary()
 
 
 def fit_result(problem: Problem, search: Search, noise_std: float | None) -> FitResult:
@@ -96,7 +128,7 @@ def fit_result(problem: Problem, search: Search, noise_std: float | None) -> Fit
     residual_std = np.sqrt(sigma2) if noise_std is None else float(noise_std) * np.sqrt(chi2 / dof)
     reduced_chi2 = None if noise_std is None else chi2 / dof
     names = _column_names(model, np.shape(states[0])[0], np.shape(states[0])[-1])
-    covariance, errors, insensitive, null = rank_revealing(jac, x, sigma2, names)
+    covariance, errors, insensitive, null, generalized = rank_revealing(jac, x, sigma2, names)
     p = len(model.spec.ravel(fitted))
     with np.errstate(invalid="ignore", divide="ignore"):
         correlation = covariance / np.sqrt(np.outer(np.diag(covariance), np.diag(covariance)))
@@ -106,6 +138,9 @@ def fit_result(problem: Problem, search: Search, noise_std: float | None) -> Fit
     messages += describe_null(null, x, names)
     at_bound, bound_messages = _at_bound(model.transforms, fitted)
     messages += bound_messages
+    observations, noise = np.asarray(problem.data.observations), float(problem.data.noise)
+    outliers = gross_outliers(r, observations, noise, save_times(problem.data.ts_seg))
+    messages += [] if outliers is None else [outliers]
     if noise_std is not None and reduced_chi2 is not None and reduced_chi2 > 1 + 5 * np.sqrt(2 / dof):
         messages.append(
             f"the fit ends with reduced χ² = {reduced_chi2:.3g} (residual std {residual_std:.3g} for "
@@ -113,6 +148,8 @@ def fit_result(problem: Problem, search: Search, noise_std: float | None) -> Fit
             f"{1 + 5 * np.sqrt(2 / dof):.3g}: the fit ends at a local minimum or the model does not "
             "describe the data; try another start"
         )
+    elif noise_std is None and outliers is None:
+        messages += [m for m in (misfit(r, observations),) if m is not None]
     for message in messages:
         warnings.warn(f"jl.fit: {message}.", FitWarning, stacklevel=3)
     return FitResult(
@@ -132,6 +169,11 @@ def fit_result(problem: Problem, search: Search, noise_std: float | None) -> Fit
         at_bound=at_bound,
         warnings=tuple(messages),
         initial_state_errors=_initial_state_errors(model, errors[p:], states),
+        identifiable=identifiable_combinations(null, x, generalized, names),
+        chi2=chi2,
+        dof=dof,
+        noise_std=None if noise_std is None else float(noise_std),
+        names=tuple(names[:p]),
     )
 
 
@@ -245,7 +287,9 @@ def rank_revealing(jac, x, sigma2, names):
     and a combination determined ``1/√ε ≈ 7e7`` times worse than the best one is no estimate.
     Every variable with a component (``> √ε``) in those directions gets an
     infinite standard error. Returns ``(covariance, standard errors, insensitive indices,
-    null vectors in physical units)``.
+    null vectors in physical units, generalized inverse)``: the last is ``σ² (JᵀJ)⁺`` over the
+    sensitive variables (zero elsewhere), finite, for the combinations the data determine
+    (`jaxlag._fit.combinations`).
     """
     eps = np.finfo(jac.dtype).eps
     norms = np.linalg.norm(jac, axis=0)
@@ -255,6 +299,7 @@ def rank_revealing(jac, x, sigma2, names):
     active = np.flatnonzero(relative > np.sqrt(eps) * scale)
     p = jac.shape[1]
     covariance = np.full((p, p), np.nan)
+    generalized = np.zeros((p, p))
     errors = np.full(p, np.inf)
     null = np.zeros((0, p))
     if active.size:
@@ -272,6 +317,7 @@ def rank_revealing(jac, x, sigma2, names):
             null_phys[:, active] = vn / d
             null = null_phys
         covariance[np.ix_(active, active)] = sub
+        generalized[np.ix_(active, active)] = sub
         ok = active[~undetermined]
         errors[ok] = np.sqrt(np.diag(covariance)[ok])
         bad = active[undetermined]
@@ -281,7 +327,7 @@ def rank_revealing(jac, x, sigma2, names):
     covariance[:, insensitive] = np.nan
     for j in np.flatnonzero(~np.isfinite(errors)):
         covariance[j, j] = np.inf
-    return covariance, errors, insensitive, null
+    return covariance, errors, insensitive, null, generalized
 
 
 def describe_null(null, x, names) -> list[str]:
