@@ -4,7 +4,9 @@ JAX's persistent cache keeps no program that holds a host callback (``eqx.error_
 run-time checks of ``SaveAt(ts=...)``), so this is a property of the programs jaxlag builds
 when called eagerly: each must be free of host callbacks. Two fresh processes run the same
 script on one cache directory; in the second, every compile request must be a cache hit
-(``jax.monitoring``'s ``compile_requests_use_cache`` and ``cache_hits`` events)."""
+(``jax.monitoring``'s ``compile_requests_use_cache`` and ``cache_hits`` events). The script:
+the README example, its first ``jax.grad``, a ``simulate_batch`` and a constant-step solve with
+``dt0``."""
 
 import json
 import os
@@ -44,6 +46,10 @@ _SCRIPT = textwrap.dedent(
     batch = jl.simulate_batch(pendulum, jnp.linspace(0.1, 1.0, 8)[:, None], jnp.zeros(1),
                               jnp.linspace(0, 2, 21), args={"g": 9.81})
     jax.block_until_ready(batch.q)
+    import diffrax
+    fixed = jl.simulate(pendulum, jnp.array([0.5]), jnp.zeros(1), jnp.linspace(0, 1, 11), args={"g": 9.81},
+                        solver=jl.RK4(), stepsize_controller=diffrax.ConstantStepSize(), dt0=0.01)
+    jax.block_until_ready(fixed.q)
     print("COUNTS " + json.dumps(counts))
     """
 )

@@ -82,3 +82,26 @@ def test_saves_after_a_terminating_event_are_inf():
 def test_t0_equal_to_t1_saves_the_initial_state():
     ts = jnp.zeros(3)
     np.testing.assert_array_equal(_ours(_Y0, 1.0, ts), _diffrax(_Y0, 1.0, ts))
+
+
+def test_dt0_of_the_wrong_sign_is_refused_on_the_host():
+    import jaxlag as jl
+
+    pendulum = jl.System(lambda q, qd, args: 0.5 * qd[0] ** 2 + jnp.cos(q[0]))
+    with pytest.raises(ValueError, match="dt0 must be finite, nonzero and have the sign of t1 - t0"):
+        jl.simulate(pendulum, jnp.array([0.5]), jnp.zeros(1), jnp.linspace(0, 1, 5), dt0=-0.1)
+
+
+def test_a_given_dt0_is_the_first_step():
+    # dt0 reaches the controller through the guard (diffeqsolve gets dt0=None): constant steps of
+    # dt0 take (t1 - t0)/dt0 steps, and a traced dt0 gives the same trajectory.
+    import jaxlag as jl
+
+    pendulum = jl.System(lambda q, qd, args: 0.5 * qd[0] ** 2 + jnp.cos(q[0]))
+    run = lambda dt0: jl.simulate(  # noqa: E731
+        pendulum, jnp.array([0.5]), jnp.zeros(1), jnp.linspace(0, 1, 5), solver=jl.RK4(),
+        stepsize_controller=diffrax.ConstantStepSize(), dt0=dt0,
+    )  # fmt: skip
+    eager = run(0.05)
+    assert int(eager.stats["num_steps"]) == 20
+    np.testing.assert_array_equal(jax.jit(lambda d: run(d).q)(0.05), eager.q)

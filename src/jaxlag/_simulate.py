@@ -32,7 +32,7 @@ from ._segment_loop import solve_segments
 from ._simulation_inputs import SimulationInputs
 from ._solver import tangent_solve
 from ._solver.guard import guard, saving_guard_state
-from ._solver.save_times import plain_save_times, solve_saving_times
+from ._solver.save_times import checked_save_times, save_checked_state, solve_saving_times
 from ._solver.step_once import StepOnce
 from ._solver.validation import check_solver_controller
 from ._stabilization import (
@@ -112,8 +112,8 @@ def _integrate(
         controller = tangent_solve.primal_step_sizes(controller)
     saveat = saving_guard_state(saveat)
     solve = diffrax.diffeqsolve
-    save_times = plain_save_times(saveat)
-    if save_times is not None:  # without diffrax's run-time checks of ts (host callbacks)
+    save_times = checked_save_times(saveat)
+    if save_times is not None:  # checked by simulate: without diffrax's run-time checks (host callbacks)
         solve = ft.partial(solve_saving_times, save_times)
     return solve(
         terms=term,
@@ -184,13 +184,13 @@ def _solve(
     solver = StepOnce(solver)
     # Failures are recorded (jaxlag._errors), not thrown by diffrax: simulate raises with the
     # numbers and a diagnosis instead of "max_steps reached" after 65,536 rejected NaN steps.
-    controller = guard(stepsize_controller)
+    controller = guard(stepsize_controller, dt0)  # diffrax's own dt0 check is a host callback
     solution = _integrate(
         term,
         solver,
         t0,
         t1,
-        dt0,
+        None,
         (q0, qd0),
         args,
         saveat,
@@ -268,14 +268,14 @@ def _solve_with_tangents(run, static, primals, tangents, axes, structure):
     # The projected solver's system (M found constant, from the parameters) has tangents too.
     projected = getattr(solver_tangent, "system", None) if inputs.projection is not None else None
     stepper = tangent_solve.TangentSolver(solver, projected)
-    controller = guard(inputs.stepsize_controller)
+    controller = guard(inputs.stepsize_controller, inputs.dt0)  # diffrax's dt0 check: a host callback
     variational = tangent_solve.TangentTerm(term, term_tangent, args_tangent)
     solution = _integrate(
         variational,
         stepper,
         inputs.t0,
         inputs.t1,
-        inputs.dt0,
+        None,
         (y0, y0_tangent),
         inputs.args,
         inputs.saveat,
@@ -345,7 +345,7 @@ class _Run(AbstractPushingRun):
             saveat.dense
             or saveat.solver_state
             or saveat.made_jump
-            or any(sub.fn is not _SAVE_Y for sub in subs)
+            or any(sub.fn is not _SAVE_Y and sub.fn is not save_checked_state for sub in subs)
         ):
             return False
         if perturbed is None:
@@ -489,15 +489,26 @@ def simulate(
                 raise ValueError(text)
         elif checks.times:  # traced save times: the same check, compiled in
             ts = eqx.error_if(ts, ~jnp.all(jnp.diff(ts) > 0), _SAVE_TIMES)
+        if saveat is None and t0 is None and t1 is None:
+            # Checked above (or compiled in): saved without diffrax's checks (host callbacks).
+            saveat = diffrax.SaveAt(subs=diffrax.SubSaveAt(ts=ts, fn=save_checked_state))
+        elif saveat is None:
+            saveat = diffrax.SaveAt(ts=cast(jax.Array, ts))  # an array since as_jax_array above
         t0 = ends[0] if t0 is None else t0
         t1 = ends[-1] if t1 is None else t1
-        if saveat is None:
-            saveat = diffrax.SaveAt(ts=cast(jax.Array, ts))  # an array since as_jax_array above
     if t0 is None or t1 is None:
         raise ValueError("Give save times `ts`, or `t0` and `t1` (with a diffrax.SaveAt).")
     if saveat is None:
         saveat = diffrax.SaveAt(t1=True)
     t0, t1 = _as_time(t0, q0.dtype), _as_time(t1, q0.dtype)
+    if dt0 is not None and is_concrete((dt0, t0, t1)):
+        # (diffrax's own check is compiled in, a host callback: a traced dt0 takes the sign of
+        # t1 - t0, see jaxlag._solver.guard)
+        step, span = float(dt0), float(t1) - float(t0)
+        if not (step * span > 0 or (span == 0 and np.isfinite(step))):
+            raise ValueError(
+                f"dt0 must be finite, nonzero and have the sign of t1 - t0 = {span:g}; got dt0={step!r}."
+            )
     if solver is None:
         solver = diffrax.Tsit5()
     default_controller = stepsize_controller is None

@@ -2,6 +2,12 @@
 
 Wraps the user's controller (`guard`); the guard's state records the time reached, the last
 step size and the last accepted state, which the failure record (``jaxlag._errors``) reports.
+
+The guard also carries the initial step ``dt0`` and hands it to the wrapped controller's
+``init``, so that ``diffeqsolve`` is called with ``dt0=None``: diffrax checks a given ``dt0``'s
+sign against ``t1 − t0`` inside the program (a host callback when the times are traced, which
+keeps the program out of JAX's persistent cache). ``simulate`` checks a concrete ``dt0`` on the
+host; a traced one takes the direction of integration (``|dt0|·sign(t1 − t0)``).
 """
 
 from typing import Any
@@ -10,6 +16,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import ArrayLike, Float
 
 from .forwarding import ForwardingAdaptiveController
 
@@ -29,7 +36,9 @@ class GuardState(eqx.Module):
     scale: Any  # time scale of the solve: max(|t0|, |t1|, t1 − t0)
 
 
-def _guarded_init(controller, terms, t0, t1, y0, dt0, args, func, error_order):
+def _guarded_init(controller, initial_step, terms, t0, t1, y0, dt0, args, func, error_order):
+    if initial_step is not None:
+        dt0 = initial_step
     tnext, inner = controller.init(terms, t0, t1, y0, dt0, args, func, error_order)
     q, qd = y0
     t0 = jnp.asarray(t0, q.dtype)
@@ -67,12 +76,15 @@ class FiniteStepGuard(ForwardingAdaptiveController):
     """Wraps an adaptive controller: stop at a non-finite step of round-off size (see module)."""
 
     controller: diffrax.AbstractAdaptiveStepSizeController
+    initial_step: Float[ArrayLike, ""] | None = None  # |dt0|, given the direction by `wrap`
 
     def wrap(self, direction):
-        return FiniteStepGuard(self.controller.wrap(direction))  # pyright: ignore[reportCallIssue]
+        return FiniteStepGuard(self.controller.wrap(direction), _directed(self.initial_step, direction))  # pyright: ignore[reportCallIssue]
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
-        return _guarded_init(self.controller, terms, t0, t1, y0, dt0, args, func, error_order)
+        return _guarded_init(
+            self.controller, self.initial_step, terms, t0, t1, y0, dt0, args, func, error_order
+        )
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
         return _guarded_adapt(
@@ -84,12 +96,15 @@ class FiniteFixedStepGuard(diffrax.AbstractStepSizeController):
     """Wraps a non-adaptive controller (constant steps): stop at the first non-finite step."""
 
     controller: diffrax.AbstractStepSizeController
+    initial_step: Float[ArrayLike, ""] | None = None  # |dt0|, given the direction by `wrap`
 
     def wrap(self, direction):
-        return FiniteFixedStepGuard(self.controller.wrap(direction))
+        return FiniteFixedStepGuard(self.controller.wrap(direction), _directed(self.initial_step, direction))
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
-        return _guarded_init(self.controller, terms, t0, t1, y0, dt0, args, func, error_order)
+        return _guarded_init(
+            self.controller, self.initial_step, terms, t0, t1, y0, dt0, args, func, error_order
+        )
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
         return _guarded_adapt(
@@ -97,16 +112,23 @@ class FiniteFixedStepGuard(diffrax.AbstractStepSizeController):
         )
 
 
-def guard(controller):
-    """The controller wrapped in the matching guard (``StepTo`` stays as it is: diffrax ends its
-    loop by counting its steps; a non-finite result is then caught on the saved states)."""
+def _directed(initial_step, direction):
+    """``|dt0|`` with the sign of the direction of integration (diffrax's ``wrap``)."""
+    return None if initial_step is None else jnp.abs(initial_step) * direction
+
+
+def guard(controller, dt0=None):
+    """The controller wrapped in the matching guard, which carries the initial step ``dt0``
+    (solve with ``dt0=None`` then: see module). ``StepTo`` stays as it is (diffrax ends its loop
+    by counting its steps; a non-finite result is then caught on the saved states; it takes no
+    ``dt0``)."""
     if isinstance(controller, (FiniteStepGuard, FiniteFixedStepGuard)):
         controller = controller.controller
     if isinstance(controller, diffrax.StepTo):
         return controller
     if isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
-        return FiniteStepGuard(controller)  # pyright: ignore[reportCallIssue]
-    return FiniteFixedStepGuard(controller)
+        return FiniteStepGuard(controller, dt0)  # pyright: ignore[reportCallIssue]
+    return FiniteFixedStepGuard(controller, dt0)
 
 
 def saving_guard_state(saveat: diffrax.SaveAt) -> diffrax.SaveAt:

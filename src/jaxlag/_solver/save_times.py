@@ -127,22 +127,30 @@ def saved_values(
     return jax.tree.map(finish, state.values, fn(t0, y0, args))
 
 
-def plain_save_times(saveat: diffrax.SaveAt) -> Float[Array, " T"] | None:
-    """The times of ``saveat`` when it is exactly ``SaveAt(ts=ts)`` (states at ``ts``, nothing
-    else; the controller state may be asked for), else None."""
+def save_checked_state(t, y, args):
+    """The state as it is: the save function of a ``SubSaveAt(ts=ts, fn=save_checked_state)``
+    whose ``ts`` jaxlag has checked itself (increasing, ``t0 = ts[0]``, ``t1 = ts[-1]``), which
+    `checked_save_times` recognises and `solve_saving_times` saves without diffrax's checks."""
+    del t, args
+    return y
+
+
+def checked_save_times(saveat: diffrax.SaveAt) -> Float[Array, " T"] | None:
+    """The times of ``saveat`` when it is ``SaveAt(subs=SubSaveAt(ts=ts, fn=save_checked_state))``
+    (the controller state may be asked for too), else None."""
     sub = saveat.subs
     if not isinstance(sub, diffrax.SubSaveAt) or sub.ts is None or sub.t0 or sub.t1 or sub.steps:
         return None
-    if sub.fn is not diffrax.SubSaveAt(t1=True).fn or saveat.dense or saveat.solver_state or saveat.made_jump:
+    if sub.fn is not save_checked_state or saveat.dense or saveat.solver_state or saveat.made_jump:
         return None
     return sub.ts
 
 
 def solve_saving_times(ts: Float[Array, " T"], *, solver, saveat: diffrax.SaveAt, adjoint, **kwargs):
     """``diffrax.diffeqsolve(solver=solver, saveat=saveat, adjoint=adjoint, **kwargs)`` for a
-    ``saveat`` that is ``SaveAt(ts=ts)``, through `SaveTimes`: the returned ``Solution``'s ``ts``
-    and ``ys`` are those ``SaveAt(ts=ts)`` gives (its other fields as asked by ``saveat``, and
-    the solver state)."""
+    ``saveat`` that saves the state at increasing times ``ts`` from ``t0 = ts[0]`` to
+    ``t1 = ts[-1]``, through `SaveTimes`: the returned ``Solution``'s ``ts`` and ``ys`` are those
+    ``SaveAt(ts=ts)`` gives (its other fields as asked by ``saveat``, and the solver state)."""
     wrapped = SaveTimes.for_adjoint(solver, ts, adjoint)
     within = diffrax.SaveAt(t1=True, solver_state=True, controller_state=saveat.controller_state)
     solution = diffrax.diffeqsolve(solver=wrapped, saveat=within, adjoint=adjoint, **kwargs)
