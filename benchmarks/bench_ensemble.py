@@ -171,8 +171,8 @@ def jaxlag_batch(system, nsteps, **kwargs):
 def _jaxlag_kernel_only(system, nsteps):
     """jaxlag's Pallas backend without its CPU fallback (to ask whether it lowers for CUDA)."""
     from jaxlag._batch.methods import BatchProblem
-    from jaxlag.experimental._ensemble.entry import ConstantGrid, EnsembleRun, _run_impl
-    from jaxlag.experimental._ensemble.integrate import make_settings
+    from jaxlag.experimental._ensemble.run import ConstantGrid, EnsembleRun, run_impl
+    from jaxlag.experimental._ensemble.settings import make_settings
 
     settings = make_settings(diffrax.Tsit5(), diffrax.ConstantStepSize(), nsteps, None, False)
 
@@ -193,7 +193,7 @@ def _jaxlag_kernel_only(system, nsteps):
             tolerance=1e-8,
             keep_first=False,
         )
-        return _run_impl(ensemble, "pallas")[0].q  # (trajectory, initial-state diagnostics)
+        return run_impl(ensemble, "pallas")[0].q  # (trajectory, initial-state diagnostics)
 
     return run
 

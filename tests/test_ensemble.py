@@ -227,8 +227,8 @@ def test_pallas_interpret_equals_the_xla_loop(monkeypatch):
 
     monkeypatch.setattr(kernel, "BLOCK", 2)  # 3 members: two programs, one padded member
     lanewise = []
-    original = kernel._lanes_integrate
-    monkeypatch.setattr(kernel, "_lanes_integrate", lambda *a, **k: lanewise.append(1) or original(*a, **k))
+    original = kernel.lanes_integrate
+    monkeypatch.setattr(kernel, "lanes_integrate", lambda *a, **k: lanewise.append(1) or original(*a, **k))
     q0, qd0 = on_rod()
     args = {"g": 9.81, "l": LENGTHS}
     options = dict(args=args, args_axes={"l": 0, "g": None}, stepsize_controller=CONSTANT, dt0=0.05)

@@ -1,16 +1,15 @@
 """``jaxlag.experimental.simulate_ensemble``: the ensemble integrator's own entry point."""
 
-import diffrax
 from jax.sharding import Mesh, NamedSharding
 from jaxtyping import ArrayLike, Float, PyTree
+from typing_extensions import Unpack
 
 from ..._batch.batch import simulate_batch
 from ..._batch.ensemble import Ensemble, EnsembleBackend
-from ..._checks import Checks
-from ..._custom_types import Args, RealScalarLike
-from ..._stabilization import Baumgarte, Projection
+from ..._custom_types import Args
 from ..._system import System
 from ..._trajectory import Trajectory
+from .options import EnsembleOptions, check_names
 
 
 def simulate_ensemble(
@@ -23,18 +22,7 @@ def simulate_ensemble(
     args_axes: PyTree[int | None] = None,
     sharding: str | Mesh | NamedSharding | None = None,
     backend: EnsembleBackend = "auto",
-    t0: RealScalarLike | None = None,
-    t1: RealScalarLike | None = None,
-    solver: diffrax.AbstractSolver | None = None,
-    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
-    dt0: RealScalarLike | None = None,
-    saveat: diffrax.SaveAt | None = None,
-    max_steps: int = 2**16,
-    adjoint: diffrax.AbstractAdjoint | None = None,
-    throw: bool = True,
-    baumgarte: Baumgarte | None = None,
-    projection: Projection | None = Projection(),
-    checks: Checks = Checks(),
+    **options: Unpack[EnsembleOptions],
 ) -> Trajectory:
     r"""A batch integrated as one explicit Runge–Kutta loop whose state is the whole batch,
     ``q, q̇`` of shape ``(B, n)``: each step is
@@ -50,18 +38,21 @@ def simulate_ensemble(
     **Arguments:** ``system``, ``q0``, ``qd0``, ``ts``, ``args``, ``args_axes`` and
     ``sharding`` as for [`simulate_batch`][jaxlag.simulate_batch] (``ts`` may also be per member,
     ``(B, T)``); ``backend``: ``"xla"``, ``"pallas"`` (constant steps, one fused kernel),
-    ``"pallas-interpret"`` or ``"auto"`` (``"xla"``); the supported options of
-    [`simulate`][jaxlag.simulate], with its defaults: ``stepsize_controller``
+    ``"pallas-interpret"`` or ``"auto"`` (``"xla"``); ``**options``: the options of
+    [`simulate`][jaxlag.simulate] that the integrator supports (``t0``, ``t1``, ``solver``,
+    ``stepsize_controller``, ``dt0``, ``saveat``, ``max_steps``, ``adjoint``, ``throw``,
+    ``baumgarte``, ``projection``, ``checks``), with its defaults: ``stepsize_controller``
     ``diffrax.ConstantStepSize()`` (with ``dt0``, concrete save times) or
     ``diffrax.PIDController`` (each member its own step size), ``saveat`` at ``t1`` or at
     given times only, ``adjoint`` ``diffrax.RecursiveCheckpointAdjoint()`` (reverse mode, the
     default) or ``diffrax.ForwardMode()``. Events, unilateral constraints, friction and
-    progress meters are not supported: use [`simulate_batch`][jaxlag.simulate_batch] with
-    ``method=jl.Vmap()``.
+    progress meters are not supported (the options ``events``, ``event`` and ``progress_meter``
+    are a ``TypeError``): use [`simulate_batch`][jaxlag.simulate_batch] with ``method=jl.Vmap()``.
 
     Returns a [`Trajectory`][jaxlag.Trajectory] with a leading batch axis; ``throw=True`` raises
     [`SimulationError`][jaxlag.SimulationError] naming the first failed member.
     """
+    check_names(options, "simulate_ensemble")
     return simulate_batch(
         system,
         q0,
@@ -71,16 +62,5 @@ def simulate_ensemble(
         args_axes=args_axes,
         sharding=sharding,
         method=Ensemble(backend),
-        t0=t0,
-        t1=t1,
-        solver=solver,
-        stepsize_controller=stepsize_controller,
-        dt0=dt0,
-        saveat=saveat,
-        max_steps=max_steps,
-        adjoint=adjoint,
-        throw=throw,
-        baumgarte=baumgarte,
-        projection=projection,
-        checks=checks,
+        **options,
     )

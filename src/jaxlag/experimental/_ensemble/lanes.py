@@ -19,7 +19,6 @@ columns. Primitives outside this set raise `NotImplementedError` (the caller fal
 
 import functools
 import operator
-from typing import Any
 
 import jax
 import jax.core
@@ -167,86 +166,75 @@ def _triangular_solve(a, b, left_side, lower, transpose_a, unit_diagonal, **_):
     return x
 
 
-def _structural(name, params, operands):
-    x: Any = operands[0] if operands else None  # None for operand-free primitives (iota)
-    if name == "slice":
-        strides = params["strides"] or (1,) * x.ndim
-        return x[
-            tuple(
-                slice(a, b, s) for a, b, s in zip(params["start_indices"], params["limit_indices"], strides)
-            )
-        ]
-    if name == "squeeze":
-        return np.squeeze(x, axis=tuple(params["dimensions"]))
-    if name == "expand_dims":
-        return np.expand_dims(x, params["dimensions"])
-    if name == "reshape":
-        return np.reshape(x, params["new_sizes"])
-    if name == "broadcast_in_dim":
-        shape, dims = params["shape"], params["broadcast_dimensions"]
-        expanded = np.reshape(x, [x.shape[dims.index(d)] if d in dims else 1 for d in range(len(shape))])
-        return np.array(np.broadcast_to(expanded, shape))
-    if name == "transpose":
-        return np.transpose(x, params["permutation"])
-    if name == "concatenate":
-        return np.concatenate(operands, axis=params["dimension"])
-    if name == "stack":
-        return np.stack(operands, axis=params.get("axis", 0))
-    if name == "unstack":
-        return [np.array(part) for part in np.moveaxis(x, params.get("axis", 0), 0)]
-    if name == "split":
-        return list(np.split(x, np.cumsum(params["sizes"])[:-1], axis=params["axis"]))
-    if name == "rev":
-        return np.flip(x, axis=tuple(params["dimensions"]))
-    if name == "pad":
-        return _pad(x, operands[1], params["padding_config"])
-    if name == "iota":
-        values = np.broadcast_to(
-            np.arange(params["shape"][params["dimension"]], dtype=params["dtype"]).reshape(
-                [-1 if d == params["dimension"] else 1 for d in range(len(params["shape"]))]
-            ),
-            params["shape"],
-        )
-        return constant(values)
-    if name == "dot_general":
-        return _dot_general(*operands, **params)
-    if name in ("cumsum", "cumprod", "cummax", "cummin"):
-        combine = {
-            "cumsum": operator.add,
-            "cumprod": operator.mul,
-            "cummax": jnp.maximum,
-            "cummin": jnp.minimum,
-        }[name]
+def _slice(params, x):
+    strides = params["strides"] or (1,) * x.ndim
+    starts, limits = params["start_indices"], params["limit_indices"]
+    return x[tuple(slice(a, b, s) for a, b, s in zip(starts, limits, strides))]
+
+
+def _broadcast_in_dim(params, x):
+    shape, dims = params["shape"], params["broadcast_dimensions"]
+    expanded = np.reshape(x, [x.shape[dims.index(d)] if d in dims else 1 for d in range(len(shape))])
+    return np.array(np.broadcast_to(expanded, shape))
+
+
+def _iota(params):
+    shape, dimension = params["shape"], params["dimension"]
+    values = np.arange(shape[dimension], dtype=params["dtype"])
+    values = values.reshape([-1 if d == dimension else 1 for d in range(len(shape))])
+    return constant(np.broadcast_to(values, shape))
+
+
+def _cumulative(combine):
+    """A cumulative reduction (``cumsum``, ...) along ``params["axis"]`` with ``combine``."""
+
+    def rule(params, x):
         axis, out = params["axis"], np.array(x, dtype=object)
         moved = np.moveaxis(out, axis, 0)  # a view: writing it fills ``out``
-        order = range(moved.shape[0] - 2, -1, -1) if params.get("reverse") else range(1, moved.shape[0])
+        reverse = params.get("reverse")
+        order = range(moved.shape[0] - 2, -1, -1) if reverse else range(1, moved.shape[0])
         for i in order:
-            previous = i + 1 if params.get("reverse") else i - 1
+            previous = i + 1 if reverse else i - 1
             for index in np.ndindex(*moved.shape[1:]):
                 moved[(i,) + index] = combine(moved[(previous,) + index], moved[(i,) + index])
         return out
-    if name == "cholesky":
-        if x.ndim != 2:
-            raise NotImplementedError("batched cholesky")
-        return _cholesky(x)
-    if name == "triangular_solve":
-        return _triangular_solve(*operands, **params)
-    if name == "reduce_sum":
-        return _reduce(operator.add, x, tuple(params["axes"]))
-    if name == "reduce_max":
-        return _reduce(jnp.maximum, x, tuple(params["axes"]))
-    if name == "reduce_min":
-        return _reduce(jnp.minimum, x, tuple(params["axes"]))
-    raise NotImplementedError(name)
+
+    return rule
 
 
-_STRUCTURAL = frozenset(
-    """
-slice squeeze expand_dims reshape broadcast_in_dim transpose concatenate stack unstack split rev pad
-iota
-dot_general reduce_sum reduce_max reduce_min cumsum cumprod cummax cummin cholesky triangular_solve
-""".split()
-)
+def _unbatched_cholesky(params, x):
+    if x.ndim != 2:
+        raise NotImplementedError("batched cholesky")
+    return _cholesky(x)
+
+
+# Structural primitives: bookkeeping on the object arrays (``rule(params, *operands)``), and the
+# reductions and factorizations written out on entries.
+_STRUCTURAL = {
+    "slice": _slice,
+    "squeeze": lambda params, x: np.squeeze(x, axis=tuple(params["dimensions"])),
+    "expand_dims": lambda params, x: np.expand_dims(x, params["dimensions"]),
+    "reshape": lambda params, x: np.reshape(x, params["new_sizes"]),
+    "broadcast_in_dim": _broadcast_in_dim,
+    "transpose": lambda params, x: np.transpose(x, params["permutation"]),
+    "concatenate": lambda params, *xs: np.concatenate(xs, axis=params["dimension"]),
+    "stack": lambda params, *xs: np.stack(xs, axis=params.get("axis", 0)),
+    "unstack": lambda params, x: [np.array(part) for part in np.moveaxis(x, params.get("axis", 0), 0)],
+    "split": lambda params, x: list(np.split(x, np.cumsum(params["sizes"])[:-1], axis=params["axis"])),
+    "rev": lambda params, x: np.flip(x, axis=tuple(params["dimensions"])),
+    "pad": lambda params, x, value: _pad(x, value, params["padding_config"]),
+    "iota": _iota,
+    "dot_general": lambda params, lhs, rhs: _dot_general(lhs, rhs, **params),
+    "cumsum": _cumulative(operator.add),
+    "cumprod": _cumulative(operator.mul),
+    "cummax": _cumulative(jnp.maximum),
+    "cummin": _cumulative(jnp.minimum),
+    "cholesky": _unbatched_cholesky,
+    "triangular_solve": lambda params, a, b: _triangular_solve(a, b, **params),
+    "reduce_sum": lambda params, x: _reduce(operator.add, x, tuple(params["axes"])),
+    "reduce_max": lambda params, x: _reduce(jnp.maximum, x, tuple(params["axes"])),
+    "reduce_min": lambda params, x: _reduce(jnp.minimum, x, tuple(params["axes"])),
+}
 
 
 def evaluate(jaxpr: jcore.Jaxpr, consts, *args):
@@ -269,7 +257,7 @@ def evaluate(jaxpr: jcore.Jaxpr, consts, *args):
         if name in _ELEMENTWISE:
             outs = [_elementwise(eqn.primitive, eqn.params, *operands)]
         elif name in _STRUCTURAL:
-            result = _structural(name, eqn.params, operands)
+            result = _STRUCTURAL[name](eqn.params, *operands)
             outs = result if isinstance(result, list) else [result]
         elif inner is not None and name in (
             "pjit",
