@@ -338,3 +338,70 @@ def test_variational_integrator_and_captured_values_see_the_control():
         return jl.simulate(driven(k), jnp.zeros(1), jnp.zeros(1), jnp.array([0.0, 1.0])).q[-1, 0]
 
     np.testing.assert_allclose(jax.jit(jax.grad(final))(1.0), 1 - np.cos(1.0), rtol=1e-8)
+
+
+MODES = ("eager", "jit", "vmap")
+
+
+def _in_mode(mode, fn, x):
+    if mode == "eager":
+        return jax.block_until_ready(fn(x))
+    if mode == "jit":
+        return jax.block_until_ready(jax.jit(fn)(x))
+    return jax.block_until_ready(jax.vmap(fn)(x[None]))
+
+
+def _stacked(q, qd, u):  # Q_u = (u,) for a scalar u; a u of shape (2,) makes it (1, 2)
+    return jnp.stack([u])
+
+
+def _two_inputs(q, qd):
+    return jnp.zeros(2)
+
+
+def _nan_after_half_a_second(q, qd, t):
+    return jnp.where(t > 0.5, jnp.nan, -5.0 * q[0])
+
+
+_PLANT = jl.System(_pendulum_lagrangian, actuation=_stacked)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_control_law_of_the_wrong_shape_is_named(mode):
+    # Before: "The actuation function must return ... shape (1,) like q; with u of shape (2,) it
+    # returned shape (1, 2)": the actuation was blamed for the control law's u. The check runs
+    # while tracing: the same ValueError in every mode.
+    def run(theta0):
+        return jl.simulate(_PLANT.with_control(_two_inputs), theta0, jnp.zeros(1), jnp.array([0.0, 0.1])).q
+
+    with pytest.raises(ValueError, match=r"The control law gives u of shape \(2,\), which the actuation"):
+        _in_mode(mode, run, jnp.array([0.3]))
+    # An actuation that cannot take the law's u at all: the error it raises, under the law's name.
+    raising = jl.System(
+        _pendulum_lagrangian, actuation=lambda q, qd, u: jnp.stack([u, 0.0])[:1], control=_two_inputs
+    )
+    with pytest.raises(ValueError, match=r"The control law gives u of shape \(2,\).* raised"):
+        raising.check(jnp.zeros(1), jnp.zeros(1))
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_control_law_returning_nan_is_named(mode):
+    # Before: "the accelerations q̈ (... or a force or dissipation function returned NaN)" for a
+    # system that has neither. The diagnosis now evaluates each force function on its own.
+    controlled = _PLANT.with_control(_nan_after_half_a_second)
+
+    def run(theta0):
+        return jl.simulate(controlled, theta0, jnp.zeros(1), jnp.array([0.0, 1.0])).q
+
+    named = r"at t = 0\.5.*the control law's input u = control\(q, q̇, \[t\], \[args\]\).* is non-finite"
+    if mode == "eager":
+        with pytest.raises(jl.SimulationError, match=named):
+            _in_mode(mode, run, jnp.array([0.3]))
+        return
+    # Compiled: the static cause; the record carries the state, and its full message names the law.
+    with pytest.raises(Exception, match="equations of motion became non-finite"):
+        _in_mode(mode, run, jnp.array([0.3]))
+    if mode == "jit":
+        kept = jax.jit(lambda x: jl.simulate(controlled, x, jnp.zeros(1), jnp.array([0.0, 1.0]), throw=False))
+        with pytest.raises(jl.SimulationError, match=named):
+            kept(jnp.array([0.3])).raise_if_failed()

@@ -210,6 +210,44 @@ def test_batch_member_with_a_bad_initial_state_is_named():
         jl.simulate_batch(CARTESIAN, q0s, jnp.zeros(2), TS, args=args)
 
 
+def _falling(q, qd):
+    return 0.5 * qd[0] ** 2 - 9.81 * q[0]
+
+
+def bad_bounce(q, qd):  # q̇ < 0 at the floor: √q̇ is NaN
+    return q, jnp.sqrt(qd)
+
+
+BAD_BOUNCE = jl.Events(jl.Event(lambda q, qd: q[0], terminal=False, direction=False, reset=bad_bounce))
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_reset_returning_nan_is_named(mode):
+    """Before: the next segment started from NaN and the run ended in "max_steps ... stiff or
+    singular near this state". Now the segment loop checks the reset's output (FailureCode.RESET),
+    and the message names the event and its reset, at the landing √(2h/g)."""
+
+    def run(h):
+        return jl.simulate(jl.System(_falling), h, jnp.zeros(1), TS, events=BAD_BOUNCE).q
+
+    landing = np.floor(np.sqrt(2 / 9.81) * 1e6) / 1e6
+    with raises(
+        mode,
+        jl.SimulationError,
+        rf"reset of event 0 \(bad_bounce\).*at t = {landing:.6f}.*q̇⁺ = \[nan\]",
+        r"the reset of a jl.Event .* returned a non-finite state",
+    ):
+        run_in(mode, run, jnp.array([1.0]))
+    if mode == "jit":
+        traj = jax.jit(
+            lambda h: jl.simulate(jl.System(_falling), h, jnp.zeros(1), TS, events=BAD_BOUNCE, throw=False)
+        )(jnp.array([1.0]))
+        assert int(traj.failure.code) == jl.FailureCode.RESET and int(traj.failure.index) == 0
+        np.testing.assert_allclose(traj.failure.t, np.sqrt(2 / 9.81), atol=1e-12)
+        saved = np.asarray(TS) < np.sqrt(2 / 9.81)  # the saves before the reset are kept
+        assert np.all(np.isfinite(traj.q[saved])) and np.all(np.isinf(traj.q[~saved]))
+
+
 # ----------------------------------------------------------------------------- 3. float32
 FLOAT32 = textwrap.dedent("""
     import jax, jax.numpy as jnp, numpy as np

@@ -229,3 +229,46 @@ def test_friction_needs_a_unilateral_contact_row_and_no_least_squares():
         jl.simulate(bilateral, jnp.zeros(2), jnp.zeros(2), TS, args={"theta": 0.0, "c": 0.0, "A": 0.0})
     with pytest.raises(ValueError, match="least_squares=True is not supported"):
         jl.System(lagrangian, surface, unilateral=0, least_squares=True, friction=jl.Coulomb(0, along, 0.1))
+
+
+# ----------------------------------------------------------------------- the coefficient's range
+SLOPE = {"theta": jnp.asarray(THETA), "c": jnp.asarray(0.0), "A": jnp.asarray(0.0)}
+
+
+def released_on_the_ramp(mu, throw=True):
+    """A block released at rest on the 30° ramp (μ an array leaf: one program per mode)."""
+    system = jl.System(lagrangian, surface, forces=push, unilateral=0, friction=jl.Coulomb(0, along, mu))
+    return jl.simulate(
+        system, jnp.zeros(2), jnp.zeros(2), TS[:5], args=SLOPE, events=jl.Events(max_segments=4), throw=throw
+    )
+
+
+def slid(mu):
+    return along(released_on_the_ramp(mu).q[-1], SLOPE)
+
+
+def test_friction_coefficient_out_of_range_is_refused_in_every_mode():
+    # Before: a traced μ < 0 ran, friction pushing the block up the slope (τ grew), and μ = NaN
+    # read "the equations of motion became non-finite". The segment loop now checks μ before
+    # the first step: FailureCode.FRICTION_COEFFICIENT, raised with the value eagerly (here
+    # under grad, where μ is traced) and with the static message under jit and vmap.
+    t = float(TS[4])
+    down = G * (math.sin(THETA) - 0.3 * math.cos(THETA))
+    np.testing.assert_allclose(slid(0.3), -0.5 * down * t**2, atol=1e-12)  # slides down: valid
+    np.testing.assert_allclose(jax.grad(slid)(0.3), 0.5 * G * math.cos(THETA) * t**2, rtol=1e-10)
+    with pytest.raises(jl.SimulationError, match=r"Coulomb contact 0 \(on holonomic row 0\) is mu = -0\.1"):
+        jax.grad(slid)(-0.1)
+    compiled = r"friction coefficient .*negative or not finite"
+    with pytest.raises(Exception, match=compiled):
+        jax.block_until_ready(jax.jit(slid)(-0.5))
+    with pytest.raises(Exception, match=compiled):
+        jax.block_until_ready(jax.vmap(slid)(jnp.array([0.3, jnp.nan])))
+    kept = jax.jit(lambda mu: released_on_the_ramp(mu, throw=False))
+    for mu in (-0.5, np.nan):
+        traj = kept(jnp.asarray(mu))
+        assert int(traj.failure.code) == jl.FailureCode.FRICTION_COEFFICIENT
+        assert int(traj.failure.index) == 0
+        np.testing.assert_array_equal(traj.failure.value, mu)
+        assert np.all(np.isinf(traj.q[1:]))  # it did not run
+    with pytest.raises(jl.SimulationError, match=r"mu = nan .*must be finite and >= 0"):
+        traj.raise_if_failed()

@@ -135,14 +135,17 @@ def lagrangian_checks(system) -> AbstractLagrangianChecks:
     return fn if isinstance(fn, AbstractLagrangianChecks) else NoLagrangianChecks()
 
 
-def initial_activity(system, q, t, args, tolerance):
-    """Holonomic activity mask at the start: unilateral constraints act only where ``f_i ≈ 0``."""
+def initial_activity(system, q, qd, t, args, tolerance):
+    """Holonomic activity mask at the start: a unilateral constraint acts only where it touches
+    (``|f_i| ≤ tolerance``) and does not separate (``ḟ_i ≤ tolerance``). One that touches and
+    separates at ``t0`` (a ball thrown up from the floor, ``f = 0``, ``ḟ > 0``) is inactive: the
+    body flies, and the segment loop finds its landing (it is "departing" there)."""
     if system.holonomic is None:
         return jnp.zeros((0,), bool)
-    f = _constraints.holonomic_residual(system, q, t, args)
+    f, f_dot, _ = _constraints.constraint_residuals(system, q, qd, t, args)
     active = jnp.ones(f.shape, bool)
     for i in system.unilateral:
-        active = active.at[i].set(jnp.abs(f[i]) <= tolerance)
+        active = active.at[i].set((jnp.abs(f[i]) <= tolerance) & ~(f_dot[i] > tolerance))
     return active
 
 
@@ -194,7 +197,7 @@ def _diagnostic_values(system, q, qd, t, args, tolerance, spectra=True):
     mass = mass_matrix(system, q, qd, t, args)
     f, f_dot, g = _constraints.constraint_residuals(system, q, qd, t, args)
     rows, _ = _constraints.constraint_rows(system, q, qd, t, args)
-    active = initial_activity(system, q, t, args, tolerance)
+    active = initial_activity(system, q, qd, t, args, tolerance)
     unilateral = jnp.zeros(f.shape, bool)
     for i in system.unilateral:
         unilateral = unilateral.at[i].set(True)

@@ -20,7 +20,12 @@ from . import _compile as compilation
 from ._errors import Failure, FailureCode, SimulationError
 from ._mechanics import constraints as _constraints
 from ._mechanics.kkt import accelerations_and_multipliers
-from ._mechanics.lagrangian import mass_matrix, unconstrained_accelerations
+from ._mechanics.lagrangian import (
+    actuation_forces,
+    control_input,
+    mass_matrix,
+    unconstrained_accelerations,
+)
 from ._solver.guard import _ULPS
 from ._tolerances import MASS_RCOND, rcond
 
@@ -42,11 +47,27 @@ def _probe(system, q, qd, t, dt, args):
             constraints_ok = jnp.asarray(True)
             qdd = unconstrained_accelerations(system, q, qd, t, args)
         eig = jnp.linalg.eigvalsh(jnp.where(jnp.isfinite(M), M, 0.0))
+        # Each of the user's force functions on its own, so that the one that returned NaN is
+        # named (True for those the system does not have).
+        yes = jnp.asarray(True)
+        forces_ok = dissipation_ok = control_ok = actuation_ok = yes
+        if system.forces is not None:
+            forces_ok = finite(system.forces(q, qd, t=t, args=args))
+        if system.dissipation is not None:
+            dissipation_ok = finite(jax.grad(lambda v: system.dissipation(q, v, t=t, args=args))(qd))
+        if system.actuation is not None and system.control is not None:
+            u = control_input(system, q, qd, t, args)
+            control_ok = finite(u)
+            actuation_ok = finite(actuation_forces(system, q, qd, t, args, u=jnp.where(control_ok, u, 0.0)))
         flags = dict(
             state=finite(q) & finite(qd),
             lagrangian=finite(L),
             mass_matrix=finite(M),
             constraints=constraints_ok,
+            forces=forces_ok,
+            dissipation=dissipation_ok,
+            control=control_ok,
+            actuation=actuation_ok,
             accelerations=finite(qdd),
         )
         return flags, eig, qdd
@@ -64,9 +85,19 @@ _CAUSES = {
     "lagrangian": "the Lagrangian L",
     "mass_matrix": "the mass matrix M = ∂²L/∂q̇²",
     "constraints": "the constraint functions (f, ḟ or g)",
-    "accelerations": "the accelerations q̈ (L, M and the constraints are finite: the solve "
-    "M q̈ = F + Jᵀλ failed, or a force or dissipation function returned NaN)",
+    "forces": "the force function Q(q, q̇, [t], [args]) (System(..., forces=...))",
+    "dissipation": "the dissipation force −∂R/∂q̇ of the Rayleigh function (System(..., dissipation=...))",
+    "control": "the control law's input u = control(q, q̇, [t], [args]) (System(..., control=...) "
+    "or system.with_control(...))",
+    "actuation": "the actuation Q_u(q, q̇, u, [t], [args]) of the control law's (finite) input u "
+    "(System(..., actuation=...))",
+    "accelerations": "the accelerations q̈ (L, M, the constraints and the user's forces are "
+    "finite: a derivative of L or of the constraints is not, or the solve M q̈ = F + Jᵀλ failed)",
 }
+
+
+#: The quantities of `_CAUSES` that are a user's force function on its own.
+_USER_FORCES = ("forces", "dissipation", "control", "actuation")
 
 
 def _fmt(x) -> str:
@@ -98,8 +129,9 @@ def _x64_hint(dtype) -> str:
     )
 
 
-def describe(failure: Failure, system=None, args=None) -> str:
-    """The message for one (unbatched, concrete) failure record."""
+def describe(failure: Failure, system=None, args=None, events=None) -> str:
+    """The message for one (unbatched, concrete) failure record. ``events``: the run's
+    [`Events`][jaxlag.Events], to name the reset of a failed one."""
     code = int(failure.code)
     t, dt = float(failure.t), float(failure.dt)
     t0, t1 = float(failure.t0), float(failure.t1)
@@ -140,6 +172,8 @@ def describe(failure: Failure, system=None, args=None) -> str:
         if cause is not None:
             msg += " " + cause.text
         return msg + hint
+    if code in (FailureCode.RESTITUTION, FailureCode.FRICTION_COEFFICIENT, FailureCode.RESET):
+        return _parameter_or_reset_text(code, failure, system, args, events, where, state) + hint
     if code == FailureCode.MAX_SEGMENTS:
         used = failure.max_segments
         done = (t - t0) / (t1 - t0) if t1 != t0 else 0.0
@@ -149,6 +183,9 @@ def describe(failure: Failure, system=None, args=None) -> str:
             "condition's direction ignores, and at the end time): "
             f"after {used} it had reached t = {t:.10g}, {100 * done:.1f}% of [{t0:g}, {t1:g}]"
         )
+        accumulation = _accumulation_text(failure, system)
+        if accumulation is not None:
+            return msg + accumulation
         if done > 1e-3 and used:
             needed = int(np.ceil(used / done)) + 1
             suggestion = int(2 ** np.ceil(np.log2(needed * 1.2)))
@@ -390,6 +427,105 @@ def _discontinuity_text(j, n, a, b, fa, fb, q, qd, dt) -> str:
     return text
 
 
+def _optional_float(x) -> float | None:
+    """A scalar of the record (``None`` for a record without that field)."""
+    return None if x is None else float(np.asarray(x))
+
+
+def _optional_int(x) -> int | None:
+    return None if x is None else int(np.asarray(x))
+
+
+def _suggestion(count: float) -> int:
+    """A power of two above ``count`` with 20 % to spare."""
+    return int(2 ** np.ceil(np.log2(max(count, 1.0) * 1.2)))
+
+
+def _accumulation_text(failure: Failure, system) -> str | None:
+    """The advice of ``MAX_SEGMENTS`` when the run stopped in an accumulation of impacts: the
+    record's ``value`` is the number of segments by the geometric series of the flights
+    (`jaxlag._mechanics.impacts.impacts_to_rest`); ``None`` if it is not one."""
+    needed = _optional_float(failure.value)
+    row = _optional_int(failure.index)
+    if needed is None or not np.isfinite(needed) or row is None or row < 0:
+        return None
+    law = getattr(system, "unilateral_law", None) if system is not None else None
+    restitution = ""
+    if law is not None and row in law.indices:
+        e = np.asarray(law.restitution)
+        if e.ndim == 1 and e.size == len(law.indices):
+            restitution = f" e = {float(e[law.indices.index(row)]):g}"
+    text = (
+        f"; the impacts on unilateral row {row} accumulate (a body bouncing to rest with "
+        f"restitution{restitution}): the flights between them shrink geometrically, so the rate "
+        "so far says little. By the geometric series of the flights the run needs about "
+        f"{int(needed):,} segments in all. Pass events=jl.Events(..., "
+        f"max_segments={_suggestion(needed)}) (or more), or end the accumulation sooner with a "
+        "larger zeno_time: events=jl.Events(..., zeno_time=τ) makes an impact plastic (the "
+        "contact persists) once its rebound would fly less than τ (the default ends it only "
+        "when the rebound would rise less than the constraint tolerance)."
+    )
+    if needed > 10_000:
+        text += f" {int(needed):,} segments take long to run: a larger zeno_time is the better lever."
+    return text
+
+
+def _parameter_or_reset_text(code, failure: Failure, system, args, events, where: str, state: str) -> str:
+    """The eager messages of `FailureCode.RESTITUTION`, ``FRICTION_COEFFICIENT`` and ``RESET``,
+    with the record's ``index`` and ``value``."""
+    index = _optional_int(failure.index)
+    value = _optional_float(failure.value)
+    shown = "?" if value is None else f"{value:g}"
+    traced = (
+        " It came in traced (through jit, vmap or grad), so it could not be checked when the "
+        "system was built; the simulation stopped before its first step."
+    )
+    if code == FailureCode.RESTITUTION:
+        law = getattr(system, "unilateral_law", None) if system is not None else None
+        row = ""
+        if law is not None and index is not None and 0 <= index < len(law.indices):
+            row = f" of unilateral row {law.indices[index]}"
+        return (
+            f"The coefficient of restitution{row} is restitution = {shown} "
+            "(jl.Unilateral(..., restitution=e)): it must be a finite number in [0, 1] (0 "
+            "plastic, 1 elastic). e > 1 adds energy at every impact (a ball would bounce higher "
+            "each time), e < 0 lets the body pass into the constraint, and jax.grad would "
+            "differentiate that motion as if it were physical." + traced
+        )
+    if code == FailureCode.FRICTION_COEFFICIENT:
+        contact = ""
+        elements = getattr(system, "friction", ()) if system is not None else ()
+        if index is not None and 0 <= index < len(elements):
+            contact = f" (on holonomic row {elements[index].contact})"
+        return (
+            f"The friction coefficient of Coulomb contact {index}{contact} is mu = {shown} "
+            "(jl.Coulomb(contact, tangent, mu)): mu must be finite and >= 0. With mu < 0 the "
+            "friction force drives the slip instead of opposing it (a block would be pushed up "
+            "the slope by it)." + traced
+        )
+    name = ""
+    output = ""
+    conditions = getattr(events, "conditions", ())
+    if index is not None and 0 <= index < len(conditions) and conditions[index].reset is not None:
+        reset = conditions[index].reset
+        fn = getattr(reset, "fn", reset)
+        label = getattr(fn, "__qualname__", None)
+        name = f" ({label if isinstance(label, str) else repr(fn)})"
+        try:
+            q_r, qd_r = reset(
+                jnp.asarray(failure.q), jnp.asarray(failure.qd), t=jnp.asarray(failure.t), args=args
+            )
+            output = f": it gave q⁺ = {_fmt(q_r)}, q̇⁺ = {_fmt(qd_r)}"
+        except Exception:  # noqa: BLE001 - the message must not hide the failure
+            output = ""
+    return (
+        f"The reset of event {index}{name} (jl.Event(..., reset=...)) returned a non-finite "
+        f"state (NaN or inf) {where}, from {state}{output}. A reset maps the state at the "
+        "crossing to the state the motion continues from and must be finite there: check "
+        "its domain (a square root or log of a negative number, a division by zero)."
+    )
+
+
 def _result_text(value: int) -> str:
     messages = getattr(diffrax.RESULTS, "_index_to_message", None)
     if messages is not None and 0 <= value < len(messages):
@@ -425,6 +561,14 @@ def _diagnosis(system, failure: Failure, args) -> str:
     text = f"There everything is finite (|q̈| = {np.max(np.abs(qdd)):.3g}, M eigenvalues {_fmt(eig)})"
     for name in _CAUSES:
         if not flags1[name]:
+            if name in _USER_FORCES:
+                dt = float(failure.dt)
+                t1 = float(failure.t) + (dt if np.isfinite(dt) and dt > 0 else 0.0)
+                return (
+                    text + f"; one step dt further, at t = {t1:.10g}, q = {_fmt(q1)}, "
+                    f"{_CAUSES[name]} is non-finite: that function returns NaN or inf there "
+                    "(outside its domain, or a table or law that gives NaN)."
+                )
             return (
                 text + f"; one step dt further, at q = {_fmt(q1)}, {_CAUSES[name]} is "
                 "non-finite: the motion leaves the region where the equations are defined "
@@ -467,7 +611,7 @@ def batch_prefix(index, flags, members) -> str:
     )
 
 
-def message(failure: Failure, system=None, args=None, *, args_batched=False) -> str | None:
+def message(failure: Failure, system=None, args=None, *, args_batched=False, events=None) -> str | None:
     """The full message for a (possibly batched) host failure record, or None.
 
     ``args`` of a batched record are used for the diagnosis only when ``args_batched`` says
@@ -480,7 +624,7 @@ def message(failure: Failure, system=None, args=None, *, args_batched=False) -> 
     if index and not args_batched:
         system = None  # which args belong to the member is unknown: no diagnosis
     member_args = member(args, index) if (index and args is not None) else args
-    text = describe(member(failure, index), system, member_args)
+    text = describe(member(failure, index), system, member_args, events)
     if index:
         text = (
             batch_prefix(index, flags, members) + text + " Pass throw=False to keep the "
@@ -489,10 +633,11 @@ def message(failure: Failure, system=None, args=None, *, args_batched=False) -> 
     return text
 
 
-def raise_if_failed(failure: Failure, system=None, args=None, *, args_batched=False) -> None:
+def raise_if_failed(failure: Failure, system=None, args=None, *, args_batched=False, events=None) -> None:
     """Raise `SimulationError` eagerly if the (concrete) record says the
-    run failed: the host counterpart of `jaxlag._errors.error_if_failed`."""
+    run failed: the host counterpart of `jaxlag._errors.error_if_failed`. ``events``: the run's
+    [`Events`][jaxlag.Events] (to name a failed reset)."""
     host = jax.device_get(failure)  # one transfer; blocks until the simulation is done
-    text = message(host, system, args, args_batched=args_batched)
+    text = message(host, system, args, args_batched=args_batched, events=events)
     if text is not None:
         raise SimulationError(text)

@@ -11,7 +11,12 @@ Three things can stop an integration after the initial state has passed its chec
   singularity (``M`` becoming singular, a velocity blowing up);
 * **``max_steps``** (`FailureCode.MAX_STEPS`) and **``max_segments``**
   (`FailureCode.MAX_SEGMENTS`) are reached, or diffrax reports another failure
-  (`FailureCode.SOLVER`).
+  (`FailureCode.SOLVER`);
+* **a parameter of the contact laws is out of its range** (`FailureCode.RESTITUTION`,
+  `FailureCode.FRICTION_COEFFICIENT`): a traced restitution ``e ∉ [0, 1]`` or friction
+  coefficient ``μ < 0`` (or NaN), which ``jl.Unilateral`` and ``jl.Coulomb`` could not check
+  when they were built; the segment loop checks them before the first step;
+* **a user's reset returned a non-finite state** (`FailureCode.RESET`).
 
 Detection costs a few scalar operations per step: the user's step-size controller is wrapped in
 `FiniteStepGuard`, which ends the solve (diffrax result
@@ -74,6 +79,17 @@ class FailureCode(enum.IntEnum):
     - ``STEP_SIZE_COLLAPSED`` (5): the step size fell to round-off of ``t`` although every trial
       state was finite (a finite-time singularity, stiffness below the dtype's time resolution,
       or a state stuck at a discontinuous force).
+    - ``RESTITUTION`` (6): a coefficient of restitution of [`Unilateral`][jaxlag.Unilateral] is
+      outside ``[0, 1]`` or not finite (one that came in traced, through ``jit``, ``vmap`` or
+      ``grad``: a concrete one is refused when the ``Unilateral`` is built). The run stops at
+      ``t0``; ``traj.failure.index`` is the position of the row in ``Unilateral.indices`` and
+      ``traj.failure.value`` the coefficient.
+    - ``FRICTION_COEFFICIENT`` (7): the friction coefficient ``mu`` of a [`Coulomb`][jaxlag.Coulomb]
+      contact is negative or not finite (traced, as for ``RESTITUTION``); ``index`` is the
+      position of the contact in ``System.friction``, ``value`` its ``mu``.
+    - ``RESET`` (8): the ``reset`` of a user [`Event`][jaxlag.Event] returned a non-finite state;
+      ``index`` is the event's position in ``Events.conditions``, and ``t``, ``q``, ``qd`` the
+      state it was given.
     """
 
     #: The static message raised for this result inside a compiled program (empty for
@@ -111,6 +127,26 @@ class FailureCode(enum.IntEnum):
         "velocity blowing up), stiffness that needs steps below the time resolution of the "
         "dtype, or a discontinuous force." + _COMPILED_HINT,
     )
+    RESTITUTION = (
+        6,
+        "jaxlag: the simulation did not start: a coefficient of restitution "
+        "(jl.Unilateral(..., restitution=e)) is outside [0, 1] or not finite. e must lie in "
+        "[0, 1] (0 plastic, 1 elastic): e > 1 adds energy at every impact, e < 0 lets the body "
+        "through the constraint. It came in traced (jit/vmap/grad), so jl.Unilateral could not "
+        "check it when it was built." + _COMPILED_HINT,
+    )
+    FRICTION_COEFFICIENT = (
+        7,
+        "jaxlag: the simulation did not start: a friction coefficient "
+        "(jl.Coulomb(..., mu)) is negative or not finite. mu must be finite and >= 0: with "
+        "mu < 0 friction would drive the slip instead of opposing it. It came in traced "
+        "(jit/vmap/grad), so jl.Coulomb could not check it when it was built." + _COMPILED_HINT,
+    )
+    RESET = (
+        8,
+        "jaxlag: the simulation stopped: the reset of a jl.Event (reset=...) returned a "
+        "non-finite state (NaN or inf); traj.failure.index says which event." + _COMPILED_HINT,
+    )
 
 
 class SimulationError(RuntimeError):
@@ -123,8 +159,12 @@ class Failure(eqx.Module):
     ``dt``: last step size tried; ``q``, ``qd``: last accepted state; ``t0``, ``t1``: the
     interval; ``num_steps``: steps taken; ``result``: diffrax's result (for
     `FailureCode.SOLVER`); ``max_steps``, ``max_segments``: the limits the run had (for the
-    messages). Every array carries the batch axes first (``*batch``); after ``jax.device_get``
-    they are NumPy arrays."""
+    messages); ``index``, ``value``: what the failure concerns, where its code says (the event
+    whose reset failed, the row whose restitution or the contact whose ``mu`` is out of range
+    and that coefficient; for `FailureCode.MAX_SEGMENTS` of an accumulation of impacts,
+    ``value`` is the number of segments the geometric series of the impacts needs in all),
+    else −1 and NaN. Every array carries the batch axes first (``*batch``); after
+    ``jax.device_get`` they are NumPy arrays."""
 
     code: Int[Array, "*batch"]
     t: Float[Array, "*batch"]
@@ -137,6 +177,8 @@ class Failure(eqx.Module):
     result: Int[Array, "*batch"]
     max_steps: int | None = eqx.field(static=True, default=None)
     max_segments: int | None = eqx.field(static=True, default=None)
+    index: Int[Array, "*batch"] | None = None
+    value: Float[Array, "*batch"] | None = None
 
 
 def from_solution(
@@ -200,6 +242,8 @@ def from_solution(
         result=jnp.asarray(result._value, jnp.int32),
         max_steps=max_steps,
         max_segments=max_segments,
+        index=jnp.asarray(-1, jnp.int32),
+        value=jnp.asarray(jnp.nan, dtype),
     )
 
 

@@ -60,9 +60,16 @@ class EventKind(enum.IntEnum):
     ``eqx.Enumeration``, so that the comparison works on the integer arrays of the log.)
 
     - ``END`` (0): the end time was reached; ``NONE`` (−1): padding after the run ended.
-    - ``RELEASE`` (1), ``CONTACT`` (2): a unilateral constraint was released / made contact.
+    - ``RELEASE`` (1): a unilateral constraint was released.
+    - ``CONTACT`` (2): a unilateral constraint was hit and engaged: a plastic impact
+      (restitution 0, or the impact that ends an accumulation of impacts), after which the
+      contact persists.
     - ``USER`` (3): a user [`Event`][jaxlag.Event] fired.
     - ``STICK`` (4), ``SLIP`` (5): a [`Coulomb`][jaxlag.Coulomb] contact started to stick / slip.
+    - ``IMPACT`` (6): a unilateral constraint was hit and the body rebounded (restitution
+      ``e > 0``: the constraint stays inactive). The bounces of a ball are ``IMPACT`` entries;
+      the last one, at rest, a ``CONTACT``. [`EventLog.impact_times`][jaxlag.EventLog] gives
+      the times of both.
     - ``SILENT`` (−2): a crossing in the direction its condition ignores; it never reaches the
       log (it ends a segment, and the log drops it).
     """
@@ -75,6 +82,7 @@ class EventKind(enum.IntEnum):
     USER = 3
     STICK = 4
     SLIP = 5
+    IMPACT = 6
 
     @property
     def label(self) -> str:
@@ -170,12 +178,66 @@ def _is_default(root_finder) -> bool:
         return False
 
 
+class ResolvedNewton(optx.AbstractRootFinder):
+    """optimistix's ``Newton``, which also stops, successfully, once its step in ``t`` is below
+    the resolution of ``t`` (4 ulps) strictly inside the bracket of the event.
+
+    ``Newton`` stops when its last step is below ``atol + rtol |t|`` *and* ``|c| < atol``. The
+    second test has no relative part: near a root ``c`` cannot come closer to 0 than
+    ``|ċ|`` times half the spacing of the floating-point numbers around ``t``, which grows with
+    ``t`` (5.7e-14 s from t = 256 s on in float64). A ball landing at 4.4 m/s after t = 256 s
+    has ``|c| ≥ 1.3e-13`` at every representable time near some of its landings: Newton's step
+    rounds to 0 there, it repeats it until its step limit, and the run failed ("maximum number
+    of steps ... nonlinear solver"), by chance, at some landing after 256 s (eagerly for some
+    heights, under ``jit`` for others, as compiling changes the round-off). A step below the
+    resolution of ``t`` means the root is located as well as ``t`` can say it. At an end of the
+    bracket a zero step can also be Newton pointing out of it, which is no root: that case
+    keeps ``Newton``'s own test."""
+
+    rtol: float
+    atol: float
+    norm: Callable = optx.max_norm
+
+    @property
+    def newton(self) -> optx.Newton:
+        return optx.Newton(rtol=self.rtol, atol=self.atol, norm=self.norm)
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        state = self.newton.init(fn, y, args, options, f_struct, aux_struct, tags)
+        return state, jax.tree.map(lambda x: jnp.full_like(x, jnp.inf), y)
+
+    def step(self, fn, y, args, options, state, tags):
+        inner, _ = state
+        new_y, inner, aux = self.newton.step(fn, y, args, options, inner, tags)
+        return new_y, (inner, jax.tree.map(jnp.subtract, new_y, y)), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        inner, last_step = state
+        stop, result = self.newton.terminate(fn, y, args, options, inner, tags)
+        lower, upper = options.get("lower"), options.get("upper")
+
+        def resolved(x, dx, low, high):
+            eps = jnp.finfo(x.dtype).eps
+            scale = jnp.maximum(jnp.maximum(jnp.abs(low), jnp.abs(high)), jnp.abs(x))
+            inside = (x > low) & (x < high)
+            return jnp.all((jnp.abs(dx) <= 4 * eps * scale) & inside)
+
+        if lower is None or upper is None:
+            return stop, result
+        done = jax.tree.leaves(jax.tree.map(resolved, y, last_step, lower, upper))
+        at_resolution = jnp.all(jnp.stack(done))
+        return stop | at_resolution, optx.RESULTS.where(stop, result, optx.RESULTS.successful)
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return self.newton.postprocess(fn, y, aux, args, options, state[0], tags, result)
+
+
 def root_finder_for(root_finder: optx.AbstractRootFinder, dtype) -> optx.AbstractRootFinder:
-    """The root finder a run uses: the default's tolerances follow ``dtype``
-    (`default_root_tolerance`); any other root finder is used as given."""
+    """The root finder a run uses: the default, `ResolvedNewton` with tolerances that follow
+    ``dtype`` (`default_root_tolerance`); any other root finder is used as given."""
     if _is_default(root_finder):
         tol = default_root_tolerance(dtype)
-        return optx.Newton(rtol=tol, atol=tol)
+        return ResolvedNewton(rtol=tol, atol=tol)
     return root_finder
 
 
@@ -203,19 +265,31 @@ class Events(eqx.Module):
     - ``root_finder``: the ``optimistix`` root finder that locates each event on the solver's
       dense output (default ``optimistix.Newton(rtol=1e-13, atol=1e-13)``; in lower precision
       than float64 the default's tolerances are ``√ε``, 3.5e-4 in float32, as 1e-13 is below
-      round-off there: the default, or a ``Newton`` equal to it, is adapted to the dtype).
-      Any other root finder is used as given.
-    - ``zeno_time``: an impact on a unilateral constraint with restitution (see
-      [`Unilateral`][jaxlag.Unilateral]) whose rebound would fly for less than ``zeno_time`` is taken
-      as the end of an accumulation of impacts (a ball bouncing to rest, infinitely many
-      impacts in finite time): it is plastic and the contact persists. The flight is predicted
-      at the impact as ``τ = 2 e |ḟ⁻| / |f̈|`` (``ḟ⁻`` the approach rate, ``f̈ < 0`` the normal
-      acceleration pressing the body onto the constraint; exact under gravity, where it is
-      ``2 e v / g``); bodies not pressed on (``f̈ ≥ 0``) never count. Default ``None``:
-      ``10⁻³ (t1 − t0)`` of the run, so the bounces cut off are shorter than a thousandth of the
-      simulated time (a ball is then at rest after ``log(τ / (2√(2h/g))) / log e`` bounces: 24
-      for ``e = 0.8``, ``h = 1``, 5 s; each bounce is a segment, count them in
-      ``max_segments``).
+      round-off there: the default, or a ``Newton`` equal to it, is adapted to the dtype, and
+      also stops once its step is below the resolution of ``t``, where ``|c| < atol`` may be
+      out of reach: late in a long run). Any other root finder is used as given.
+    - ``zeno_time``: when an impact on a unilateral constraint with restitution (see
+      [`Unilateral`][jaxlag.Unilateral]) ends an accumulation of impacts (a ball bouncing to
+      rest: infinitely many impacts in finite time, which no number of segments can run):
+      that impact is plastic and the contact persists. The rebound is predicted at each impact
+      from the approach rate ``ḟ⁻`` and the normal acceleration ``f̈ < 0`` pressing the body
+      onto the constraint (exact under gravity): it would rise by ``(e ḟ⁻)² / (2|f̈|)`` and
+      fly for ``τ = 2 e |ḟ⁻| / |f̈|``; bodies not pressed on (``f̈ ≥ 0``) never count.
+
+      Default ``None``: the impact is plastic when the rise is within the constraint tolerance
+      (``jl.Checks(constraint_tolerance=...)``; 1e-8 in float64, 3.5e-4 in float32), i.e.
+      when the rebound speed is below ``√(2 tol |f̈|)``. Such a body does not leave the band in
+      which jaxlag takes a constraint as touching (and projects onto it), so what is cut off
+      is below what the run resolves anyway; and the rule depends on the impact alone, not on
+      the time span or the save times (the same ball saved to 3 s or to 1000 s bounces the
+      same way). A ball dropped from ``h`` with restitution ``e`` comes to rest at its
+      ``⌈ln(tol/h) / (2 ln e)⌉``-th impact (88 for ``e = 0.9``, ``h = 1`` m; 42 for
+      ``e = 0.8``), at ``√(2h/g) (1 + 2e/(1 − e))``, where the bounces accumulate (8.6 s for
+      ``e = 0.9``); each impact ends a segment: count them in ``max_segments``.
+
+      A number: a flight time in the units of ``t``; the impact is plastic when
+      ``τ < zeno_time`` (fewer segments, a coarser end of the bouncing: the ball above rests
+      after ``⌈ln(zeno_time / (2√(2h/g))) / ln e⌉`` impacts).
 
     The segmented mode runs when the system has ``unilateral`` constraints or ``conditions`` is
     non-empty; it needs save times ``ts``. ``simulate(..., events=...)`` also takes a single
@@ -294,11 +368,12 @@ class EventLog(eqx.Module):
 
     - ``kind[k]``: a [`EventKind`][jaxlag.EventKind] value, compared by name
       (``log.kind == jl.EventKind.CONTACT``): ``END`` (0) the end time was reached, ``RELEASE``
-      (1) a unilateral constraint was released, ``CONTACT`` (2) one made contact, ``USER`` (3) a
-      user event fired, ``STICK`` (4) a Coulomb contact started to stick, ``SLIP`` (5) one
-      started to slip (from sticking, or reversing at ``v_t = 0``), ``NONE`` (−1) padding (the
-      run had already ended, at the end time, a terminal event or a failure). `kinds`
-      gives the names of the real entries.
+      (1) a unilateral constraint was released, ``CONTACT`` (2) one was hit and engaged
+      (a plastic impact: the contact persists), ``IMPACT`` (6) one was hit and the body
+      rebounded (restitution ``e > 0``), ``USER`` (3) a user event fired, ``STICK`` (4) a
+      Coulomb contact started to stick, ``SLIP`` (5) one started to slip (from sticking, or
+      reversing at ``v_t = 0``), ``NONE`` (−1) padding (the run had already ended, at the end
+      time, a terminal event or a failure). `kinds` gives the names of the real entries.
     - ``index[k]``: which constraint (holonomic index), which user event (position in
       ``Events.conditions``) or which Coulomb contact (position in ``System.friction``); −1
       for the end.
@@ -312,7 +387,7 @@ class EventLog(eqx.Module):
       pushes on a unilateral row); zero where nothing jumped (ends, releases, events without
       reset). For a ball of mass ``m`` hitting the floor at speed ``v`` with restitution ``e``,
       ``Λ = (1 + e) m v``.
-    - ``count``: the number of switches and events (kinds 1–5).
+    - ``count``: the number of switches and events (kinds 1–6).
     - ``modes[k]``: the friction mode of each Coulomb contact (k,) after the switch: 0
       sticking, +1 slipping with ``v_t > 0``, −1 with ``v_t < 0`` (0 also where the contact's
       normal row does not act: see ``active``). Shape (segments, 0) without friction.
@@ -328,9 +403,44 @@ class EventLog(eqx.Module):
     count: Int[Array, "*batch"]
     modes: Int[Array, "*batch segments k"] | None = None
 
+    def impact_times(self, size: int | None = None, index: int | None = None) -> Float[Array, "*batch size"]:
+        """The times at which a unilateral constraint was hit (``IMPACT`` and ``CONTACT``
+        entries: the rebounds and the plastic impacts), in order, as a fixed-size array padded
+        with ``inf``: ``size`` entries (default: the length of the log, ``max_segments``);
+        with ``index``, only the impacts on that holonomic row.
+
+        The shape is static and the entries are the log's event times, so it works inside
+        ``jit``, ``vmap`` and ``grad``: the second bounce of a ball and its derivative with
+        respect to a parameter ``p`` are::
+
+            def second_bounce(p):
+                traj = jl.simulate(make_system(p), q0, qd0, ts, events=jl.Events(max_segments=16))
+                return traj.events.impact_times(2)[1]
+
+            jax.grad(second_bounce)(p)
+
+        (``inf``, with a zero derivative, if the run had fewer impacts than asked for.) A batched
+        log (from ``jax.vmap``) gives one row per member."""
+        time, kind, row = self.time, self.kind, self.index
+        hit = (kind == EventKind.IMPACT) | (kind == EventKind.CONTACT)
+        if index is not None:
+            hit = hit & (row == index)
+        # The entries are in time order: a stable sort on "not a hit" moves the hits to the
+        # front in their order, the rest (set to inf) behind them.
+        order = jnp.argsort(~hit, axis=-1, stable=True)
+        times = jnp.take_along_axis(jnp.where(hit, time, jnp.inf), order, axis=-1)
+        length = times.shape[-1]
+        size = length if size is None else int(size)
+        if size < 0:
+            raise ValueError(f"impact_times: size must be a non-negative int; got {size}.")
+        if size > length:
+            padding = jnp.full((*times.shape[:-1], size - length), jnp.inf, times.dtype)
+            return jnp.concatenate([times, padding], axis=-1)
+        return times[..., :size]
+
     def kinds(self) -> list[str] | list[list[str]]:
-        """The names of the real entries (``"release"``, ``"contact"``, ``"user"``, ``"stick"``,
-        ``"slip"``, ``"end"``),
+        """The names of the real entries (``"release"``, ``"contact"``, ``"impact"``,
+        ``"user"``, ``"stick"``, ``"slip"``, ``"end"``),
         without the padding: ``["user", "user", "end"]``. A terminal event is the last entry;
         a completed run ends with ``"end"``. For a batched log, one list per member, nested
         like the batch axes (a list of lists after one ``vmap``). Host-side: call it outside

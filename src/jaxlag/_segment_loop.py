@@ -45,7 +45,9 @@ from ._errors import Failure, FailureCode, first_failure, from_solution
 from ._events import Event, EventKind, EventLog, Events, root_finder_for
 from ._mechanics.constant_mass import with_constant_mass
 from ._mechanics.constraints import holonomic_residual
+from ._mechanics.friction import bad_friction_coefficient
 from ._mechanics.friction_modes import AbstractFrictionModes, friction_modes_for
+from ._mechanics.impacts import bad_restitution, impacts_to_rest
 from ._mechanics.jumps import AbstractJumpLaw, Jump, SegmentEnd, jump_law_for
 from ._mechanics.resets import AbstractResets, resets_for
 from ._segment_conditions import SegmentConditions, condition_dtype, condition_values, sides_from
@@ -80,7 +82,7 @@ class _Loop(eqx.Module):
     max_segments: int = eqx.field(static=True)
     tolerance: Float[Array, ""] | float
     unilateral: Bool[Array, " m_h"]
-    zeno: Float[Array, ""]
+    zeno: float | None = eqx.field(static=True)  # Events.zeno_time (None: the default rule)
     friction: AbstractFrictionModes
     resets: AbstractResets
     jumps: AbstractJumpLaw
@@ -364,6 +366,7 @@ def _record(
             over,
             crossing.frictioned,
             crossing.released,
+            crossing.contacted & jump.rebounded,
             crossing.contacted,
             crossing.recorded,
             crossing.silent,
@@ -372,6 +375,7 @@ def _record(
             EventKind.NONE,
             jnp.where(friction.stuck, EventKind.STICK, EventKind.SLIP),
             EventKind.RELEASE,
+            EventKind.IMPACT,
             EventKind.CONTACT,
             EventKind.USER,
             EventKind.SILENT,
@@ -433,6 +437,7 @@ def _run_segment(loop: _Loop, carry: _SegmentCarry) -> tuple[_SegmentCarry, _Seg
     q_r, qd_r, reset = loop.resets.apply(
         crossing.user_index, crossing.recorded, solved.q, solved.qd, solved.t, loop.args
     )
+    solved = _checked_reset(solved, crossing, reset, q_r, qd_r)
     end = SegmentEnd(solved.t, solved.q, solved.qd, q_r, qd_r, crossing.released, crossing.contacted, reset)
     jump = loop.jumps(
         loop.system,
@@ -466,16 +471,61 @@ def _run_segment(loop: _Loop, carry: _SegmentCarry) -> tuple[_SegmentCarry, _Seg
     return _advance(loop, carry, solved, crossing, jump, friction, sides), record
 
 
-def _initial_carry(loop: _Loop, q0, qd0, t0, active0, modes0) -> _SegmentCarry:
+def _checked_reset(solved: _SolvedSegment, crossing: _Crossing, reset, q_r, qd_r) -> _SolvedSegment:
+    """``solved``, failed with `FailureCode.RESET` if the reset that fired returned a non-finite
+    state (the record keeps the state it was given and the event's index). Without this the
+    next segment started from NaN and the run ended in ``max_steps`` far from the cause."""
+    bad = reset & ~solved.broken & ~(jnp.all(jnp.isfinite(q_r)) & jnp.all(jnp.isfinite(qd_r)))
+    failure = solved.failure
+    failed = eqx.tree_at(
+        lambda f: (f.code, f.t, f.dt, f.q, f.qd, f.index),
+        failure,
+        (
+            jnp.asarray(FailureCode.RESET, failure.code.dtype),
+            jnp.asarray(solved.t, failure.t.dtype),
+            jnp.asarray(jnp.nan, failure.dt.dtype),
+            solved.q,
+            solved.qd,
+            jnp.asarray(crossing.user_index, jnp.int32),
+        ),
+    )
+    failure = jax.tree.map(lambda a, b: jnp.where(bad, a, b), failed, failure)
+    return eqx.tree_at(lambda s: (s.failure, s.broken), solved, (failure, solved.broken | bad))
+
+
+def _parameter_failure(system, m_h: int, dtype) -> tuple[Array, Array, Array]:
+    """``(code, index, value)`` of the contact laws' coefficients: `FailureCode.RESTITUTION`
+    for a restitution outside ``[0, 1]`` or not finite, `FailureCode.FRICTION_COEFFICIENT` for
+    a negative or non-finite ``μ``, else ``COMPLETED``. Concrete coefficients were checked
+    when ``jl.Unilateral`` / ``jl.Coulomb`` were built; these are the traced ones."""
+    bad_e, e_index, e = bad_restitution(system, m_h, dtype)
+    bad_mu, mu_index, mu = bad_friction_coefficient(system, dtype)
+    code = jnp.where(
+        bad_e,
+        FailureCode.RESTITUTION,
+        jnp.where(bad_mu, FailureCode.FRICTION_COEFFICIENT, FailureCode.COMPLETED),
+    )
+    return (
+        jnp.asarray(code, jnp.int32),
+        jnp.where(bad_e, e_index, jnp.where(bad_mu, mu_index, -1)).astype(jnp.int32),
+        jnp.where(bad_e, e, jnp.where(bad_mu, mu, jnp.nan)).astype(dtype),
+    )
+
+
+def _initial_carry(loop: _Loop, q0, qd0, t0, active0, modes0, parameters) -> _SegmentCarry:
+    """The carry of the first segment. ``parameters``: `_parameter_failure`; a run whose
+    coefficients are out of range fails at ``t0`` and runs no segment (each solve is empty)."""
     num_saves, n, dtype = loop.ts.shape[0], q0.shape[0], q0.dtype
     sides = jnp.zeros((0,), condition_dtype())
     if loop.events:
         start = loop.segment(active0, t0, None, modes0)
         sides = sides_from(condition_values(start, loop.baumgarte, q0, qd0, t0, loop.args))
     inf = jnp.full((num_saves, n), jnp.inf, dtype)
+    code, index, value = parameters
+    refused = code != FailureCode.COMPLETED
     none = Failure(
-        code=jnp.asarray(FailureCode.COMPLETED, jnp.int32),
-        t=jnp.asarray(loop.t1, dtype),
+        code=code,
+        t=jnp.where(refused, jnp.asarray(t0, dtype), jnp.asarray(loop.t1, dtype)),
         dt=jnp.asarray(jnp.nan, dtype),
         q=q0,
         qd=qd0,
@@ -485,14 +535,16 @@ def _initial_carry(loop: _Loop, q0, qd0, t0, active0, modes0) -> _SegmentCarry:
         result=jnp.asarray(0, jnp.int32),
         max_steps=loop.max_steps,
         max_segments=loop.max_segments,
+        index=index,
+        value=value,
     )
     return _SegmentCarry(
-        t=t0,
+        t=jnp.where(refused, jnp.asarray(loop.t1, dtype), jnp.asarray(t0, dtype)),
         q=q0,
         qd=qd0,
         active=active0,
         modes=modes0,
-        done=jnp.asarray(False),
+        done=refused,
         sides=sides,
         out_q=inf,
         out_qd=inf,
@@ -505,13 +557,37 @@ def _initial_carry(loop: _Loop, q0, qd0, t0, active0, modes0) -> _SegmentCarry:
     )
 
 
-def _out_of_segments(carry: _SegmentCarry, t0) -> Failure:
+def _out_of_segments(loop: _Loop, carry: _SegmentCarry, t0) -> Failure:
     """The run's failure, ``MAX_SEGMENTS`` if it had not ended after the last segment (from the
-    run's start to where it got)."""
+    run's start to where it got). If it stopped in an accumulation of impacts (a ball
+    bouncing), ``value`` is the number of segments the geometric series says the run needs
+    (`jaxlag._mechanics.impacts.impacts_to_rest`) and ``index`` the row."""
     failure = carry.failure
     out = ~carry.done & (failure.code == FailureCode.COMPLETED)
+    needed, row = failure.value, failure.index
+    if loop.system.unilateral and needed is not None and row is not None:
+        # Advice, not a result: no derivative flows through it (its logarithms would give
+        # NaN tangents where the where() below discards them).
+        q, qd, t = jax.lax.stop_gradient((carry.q, carry.qd, carry.t))
+        impacts, bouncing = impacts_to_rest(
+            loop.system,
+            q,
+            qd,
+            t,
+            loop.t1,
+            loop.args,
+            carry.active,
+            loop.unilateral,
+            loop.zeno,
+            loop.tolerance,
+        )
+        impacts = jax.lax.stop_gradient(impacts)
+        # The segments so far, one per impact to come, and the end.
+        total = (loop.max_segments + 1.0 + impacts).astype(needed.dtype)
+        needed = jnp.where(out, total, needed)
+        row = jnp.where(out, bouncing, row)
     return eqx.tree_at(
-        lambda f: (f.code, f.t0, f.t, f.q, f.qd),
+        lambda f: (f.code, f.t0, f.t, f.q, f.qd, f.value, f.index),
         failure,
         (
             jnp.where(out, FailureCode.MAX_SEGMENTS, failure.code),
@@ -519,7 +595,10 @@ def _out_of_segments(carry: _SegmentCarry, t0) -> Failure:
             jnp.where(out, carry.t, failure.t),
             jnp.where(out, carry.q, failure.q),
             jnp.where(out, carry.qd, failure.qd),
+            needed,
+            row,
         ),
+        is_leaf=lambda x: x is None,
     )
 
 
@@ -590,14 +669,14 @@ def _solve_segments(
     system = with_constant_mass(system, q0, qd0, t0, args)
     m_h = system.num_holonomic(q0, t0, args)
     unilateral = jnp.zeros((m_h,), bool).at[jnp.asarray(system.unilateral, jnp.int32)].set(True)
-    active0 = initial_activity(system, q0, t0, args, run.tolerance)
+    active0 = initial_activity(system, q0, qd0, t0, args, run.tolerance)
+    # Traced coefficients out of range: the run fails at t0 (FailureCode.RESTITUTION, ...).
+    parameters = _parameter_failure(system, m_h, q0.dtype)
+    state0 = (q0, qd0)  # the failure record's state, before the friction projection
     friction = friction_modes_for(system)
     modes0, qd0 = friction.initial(system, q0, qd0, t0, args, active0, run.tolerance)
     resets = resets_for(tuple(e.reset for e in events.conditions))
     dtype = q0.dtype
-    # Impacts that end an accumulation (Zeno) are plastic: see Events' zeno_time.
-    span = jnp.asarray(i.t1, dtype) - jnp.asarray(t0, dtype)
-    zeno = 1e-3 * span if events.zeno_time is None else jnp.asarray(events.zeno_time, dtype)
     loop = _Loop(
         system=system,
         args=args,
@@ -616,12 +695,14 @@ def _solve_segments(
         max_segments=events.max_segments,
         tolerance=run.tolerance,
         unilateral=unilateral,
-        zeno=zeno,
+        # Impacts that end an accumulation (Zeno) are plastic: see Events' zeno_time.
+        zeno=events.zeno_time,
         friction=friction,
         resets=resets,
         jumps=jump_law_for(system, m_h, resets),
     )
-    carry = _initial_carry(loop, q0, qd0, t0, active0, modes0)
+    carry = _initial_carry(loop, q0, qd0, t0, active0, modes0, parameters)
+    carry = eqx.tree_at(lambda c: (c.failure.q, c.failure.qd), carry, state0)
     carry, records = jax.lax.scan(lambda c, _: _run_segment(loop, c), carry, None, length=events.max_segments)
     out_q, out_qd = _projected_saves(loop, carry)
     ran = jnp.sum(records.kind != EventKind.NONE).astype(jnp.int32)
@@ -631,7 +712,7 @@ def _solve_segments(
         active=carry.out_active,
         modes=carry.out_modes.astype(jnp.int32),
         log=_event_log(records, carry.count),
-        failure=_out_of_segments(carry, t0),
+        failure=_out_of_segments(loop, carry, t0),
         # The statistics of the whole run: diffrax's, summed over the segments that ran.
         stats={**carry.steps, "max_steps": run.max_steps, "num_segments": ran},
     )

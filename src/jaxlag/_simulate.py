@@ -578,7 +578,7 @@ def simulate(
         else:
             # Failures are raised inside the custom_vjp, where the record is concrete (host-side
             # check, no compiled check) unless the caller itself is being traced.
-            finish = (lambda tr: _raise_if_failed(tr, tr.system, tr.args)) if throw else None
+            finish = (lambda tr: _raise_if_failed(tr, tr.system, tr.args, events)) if throw else None
             prepare = None
             if run.check:
                 prepare = ft.partial(_checked_initial_state, tolerance=constraint_tolerance)
@@ -595,7 +595,7 @@ def simulate(
         trajectory = run(inputs, adjoint.inner if plain else adjoint.fallback)
     else:
         trajectory = run(inputs, adjoint)
-    return _raise_if_failed(trajectory, system, args) if throw else trajectory
+    return _raise_if_failed(trajectory, system, args, events) if throw else trajectory
 
 
 def as_projection(projection, system: System) -> Projection | None:
@@ -625,11 +625,13 @@ def _check_residuals(trajectory: Trajectory, residuals):
     return failures.error_if_failed(failure, residuals)
 
 
-def _raise_if_failed(trajectory: Trajectory, system: System, args) -> Trajectory:
+def _raise_if_failed(
+    trajectory: Trajectory, system: System, args, events: Events | None = None
+) -> Trajectory:
     """Eagerly (concrete result: synchronous, full diagnosis) or compiled into the program."""
     failure = cast(failures.Failure, trajectory.failure)  # simulate always records how it ended
     if is_concrete(failure):
-        _diagnosis.raise_if_failed(failure, system, args)
+        _diagnosis.raise_if_failed(failure, system, args, events=events)
         return trajectory
     # On every floating-point output, not only q: a program that reads only an event time (e.g.
     # jax.grad of a bounce time under jit) must not drop the check as dead code.

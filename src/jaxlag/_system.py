@@ -378,12 +378,27 @@ def check_input_shape(system, q, qd, u, t, args, what: str) -> None:
         )
     n = q.shape[0]
     u = jax.ShapeDtypeStruct(shape, q.dtype)  # the input is used in the state's dtype
-    out = jax.eval_shape(lambda x, v, w: system.actuation(x, v, w, t=t, args=args), q, qd, u).shape
+    # Which size of u the actuation takes is the actuation's to say; when it refuses the one it
+    # is given, the message names where that u came from (the control law, or linearize's u=).
+    culprit = f"{what} gives u of shape {shape}, which the actuation function does not take: Q_u(q, qd, u)"
+    try:
+        out = jax.eval_shape(lambda x, v, w: system.actuation(x, v, w, t=t, args=args), q, qd, u).shape
+    except Exception as error:
+        raise ValueError(
+            f"{culprit} raised {type(error).__name__}: {error}. Make {_lower(what)} give the "
+            "input the actuation expects, or change the actuation."
+        ) from error
     if out != (n,):
         raise ValueError(
-            f"The actuation function must return the generalized forces of the input, shape ({n},) "
-            f"like q; with u of shape {shape} it returned shape {out}."
+            f"{culprit} must return the generalized forces of the input, shape ({n},) like q; "
+            f"with u of shape {shape} it returned shape {out}. Make {_lower(what)} give the "
+            "input the actuation expects, or change the actuation."
         )
+
+
+def _lower(what: str) -> str:
+    """``"The control law"`` as the object of a sentence."""
+    return what[0].lower() + what[1:] if what.startswith("The ") else what
 
 
 def _array_args_behind(fn, q, qd, t, args) -> list[tuple[tuple, tuple]]:

@@ -36,7 +36,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._conventions import UserFunction, wrap_configuration_function
 from .constraints import constraint_rows, holonomic_terms, velocity_terms
@@ -58,7 +58,9 @@ class Coulomb(eqx.Module):
       e.g. the distance along a ramp ``cos θ x + sin θ y``, or ``x − R φ`` for a rolling disc.
     - ``mu``: the friction coefficient ``μ ≥ 0`` (one value for sliding and sticking). An array
       leaf: ``jax.grad`` and ``jax.vmap`` flow through it (build the system inside the
-      function you transform).
+      function you transform). A concrete ``mu`` is checked here; a traced one (``jit``,
+      ``vmap``, ``grad``) that is negative or NaN stops the simulation before its first step
+      (``jl.FailureCode.FRICTION_COEFFICIENT``, a ``SimulationError`` naming it).
 
     The tangential generalized force is ``Tᵀλ_t``: while slipping with ``s = sign v_t``,
     ``λ_t = −μ s λ_N``; while sticking, ``λ_t`` is the multiplier of the added row ``v_t = 0``,
@@ -87,7 +89,7 @@ class Coulomb(eqx.Module):
     tangent: UserFunction
     mu: Float[Array, ""]
 
-    def __init__(self, contact: int, tangent: Callable, mu: float | ArrayLike):
+    def __init__(self, contact: int, tangent: Callable, mu: ArrayLike | Sequence[float]):
         if isinstance(contact, bool) or not isinstance(contact, (int, np.integer)) or contact < 0:
             raise TypeError(f"Coulomb contact must be a non-negative int (a holonomic row); got {contact!r}.")
         if not callable(tangent):
@@ -152,6 +154,19 @@ def _contact_data(system, m_h: int, dtype):
     for j, e in enumerate(system.friction):
         rows[j, e.contact] = 1.0
     return mu, jnp.asarray(rows, dtype)
+
+
+def bad_friction_coefficient(system, dtype) -> tuple[Bool[Array, ""], Array, Array]:
+    """``(bad, position, μ)``: whether a friction coefficient is negative or not finite, and the
+    first such contact (its position in ``System.friction``) and its ``μ``. In the program: a
+    traced ``μ`` was not checked when the `Coulomb` was built, and ``μ < 0`` would make
+    friction drive the slip (a block pushed up the slope by it)."""
+    if not system.friction:
+        return jnp.asarray(False), jnp.asarray(-1, jnp.int32), jnp.asarray(jnp.nan, dtype)
+    mu = jnp.stack([jnp.asarray(e.mu, dtype) for e in system.friction])
+    wrong = ~(jnp.isfinite(mu) & (mu >= 0))
+    first = jnp.argmax(wrong)
+    return jnp.any(wrong), first.astype(jnp.int32), mu[first]
 
 
 def friction_count(system) -> int:

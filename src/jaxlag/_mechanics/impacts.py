@@ -32,11 +32,19 @@ so does one that ends an accumulation of impacts (below).
 **Zeno (accumulation of impacts).** A body pressed onto a constraint (normal acceleration
 ``f̈_i < 0`` with the rows acting before the impact) that rebounds with ``ḟ_i⁺ = e_i |ḟ_i⁻|`` is
 back after the flight time ``τ_i = 2 e_i |ḟ_i⁻| / |f̈_i|`` (exact for a constant ``f̈``: a ball
-bouncing under gravity); the flights shrink geometrically and infinitely many impacts accumulate
-in finite time. An impact whose predicted flight ``τ_i`` is shorter than ``zeno_time`` is taken
-as the end of the accumulation: it is plastic (``e_i → 0``) and the contact persists, after
-which the multiplier carries the load (``λ = m g`` for a ball at rest). Bodies not pressed onto
-the constraint (``f̈_i ≥ 0``) never count as Zeno.
+bouncing under gravity), having risen by ``(e_i ḟ_i⁻)² / (2|f̈_i|)``; the flights shrink
+geometrically and infinitely many impacts accumulate in finite time. An impact that ends the
+accumulation (`ends_accumulation`: by default, a rise within the constraint tolerance; with
+``Events(zeno_time=τ)``, a flight shorter than ``τ``) is plastic (``e_i → 0``) and the contact
+persists, after which the multiplier carries the load (``λ = m g`` for a ball at rest). Bodies
+not pressed onto the constraint (``f̈_i ≥ 0``) never count as Zeno.
+
+**The coefficients are checked where they are used.** ``e_i`` must lie in ``[0, 1]``: a
+concrete value is refused when the `Unilateral` is built; a traced one (``jit``, ``vmap``,
+``grad``) by the segment loop before the first step (`bad_restitution`,
+``FailureCode.RESTITUTION``): ``e > 1`` would add energy at every impact and ``e < 0`` let the
+body pass into the constraint, and ``jax.grad`` would differentiate that motion as if it
+were one.
 """
 
 from collections.abc import Sequence
@@ -81,17 +89,23 @@ class Unilateral(eqx.Module):
     rebounds and stays inactive (the body leaves); one with ``e_i = 0`` engages.
 
     **Zeno.** A body pressed onto the constraint (normal acceleration ``f̈_i < 0`` with the
-    rows acting before the impact) would fly ``τ = 2 e_i |ḟ_i⁻| / |f̈_i|`` after the rebound;
-    below [`Events`][jaxlag.Events]' ``zeno_time`` (default ``10⁻³ (t1 − t0)``) the impact is
-    plastic and the contact persists: a bouncing ball comes to rest and the multiplier carries
-    its weight. The impulses are recorded in ``traj.events.impulses``
-    ([`EventLog`][jaxlag.EventLog]).
+    rows acting before the impact) would rise by ``(e_i ḟ_i⁻)² / (2|f̈_i|)`` and fly
+    ``τ = 2 e_i |ḟ_i⁻| / |f̈_i|`` after the rebound. When the rise is within the constraint
+    tolerance (the default), or ``τ`` is below [`Events`][jaxlag.Events]' ``zeno_time`` if one
+    is given, the impact is plastic and the contact persists: a bouncing ball comes to rest
+    and the multiplier carries its weight. The impulses are recorded in
+    ``traj.events.impulses`` ([`EventLog`][jaxlag.EventLog]); rebounds are ``IMPACT`` entries
+    of the log, the plastic impacts ``CONTACT`` ones.
+
+    ``restitution`` traced through ``jit``, ``vmap`` or ``grad`` cannot be checked here: a
+    value outside ``[0, 1]`` or NaN stops the simulation before its first step
+    (``jl.FailureCode.RESTITUTION``, a ``SimulationError`` naming it).
     """
 
     indices: tuple[int, ...] = eqx.field(static=True)
     restitution: Float[Array, " k"]
 
-    def __init__(self, indices: int | Sequence[int], restitution: float | ArrayLike = 0.0):
+    def __init__(self, indices: int | Sequence[int], restitution: ArrayLike | Sequence[float] = 0.0):
         if isinstance(indices, (int, np.integer)) and not isinstance(indices, bool):
             indices = (int(indices),)
         try:
@@ -153,6 +167,77 @@ def restitution_rows(system, m_h: int, dtype) -> Array:
     return e.at[jnp.asarray(law.indices)].set(jnp.asarray(law.restitution).astype(dtype))
 
 
+def bad_restitution(system, m_h: int, dtype) -> tuple[Bool[Array, ""], Array, Array]:
+    """``(bad, position, e)``: whether a coefficient of restitution is outside ``[0, 1]`` or
+    not finite, and the first such one (its position in ``Unilateral.indices`` and its value).
+    In the program: a traced ``e`` was not checked when the `Unilateral` was built."""
+    law = getattr(system, "unilateral_law", None)
+    if law is None or not law.indices:
+        return jnp.asarray(False), jnp.asarray(-1, jnp.int32), jnp.asarray(jnp.nan, dtype)
+    e = jnp.asarray(law.restitution).astype(dtype)
+    wrong = ~(jnp.isfinite(e) & (e >= 0) & (e <= 1))
+    first = jnp.argmax(wrong)
+    return jnp.any(wrong), first.astype(jnp.int32), e[first]
+
+
+def ends_accumulation(rebound, f_ddot, zeno_time: float | None, tolerance):
+    r"""Whether an impact whose rebound rate would be ``rebound = e |ḟ⁻| ≥ 0``, under the
+    normal acceleration ``f̈``, ends an accumulation of impacts (and is therefore plastic).
+
+    Only a body pressed onto the constraint (``f̈ < 0``) accumulates impacts: it would fly
+    ``τ = 2 rebound / |f̈|`` and rise by ``rebound² / (2|f̈|)``. With ``zeno_time`` ``None`` the
+    impact is plastic when the rise is within the constraint ``tolerance``: the body would not
+    leave the band in which a constraint counts as touching (``|f| ≤ tolerance``), so nothing
+    the run resolves is lost, and the rule depends on this impact alone, not on the time
+    span or the save times. With a ``zeno_time``: when ``τ < zeno_time``. Written without
+    divisions (``f̈ = 0`` is no accumulation)."""
+    pressed = f_ddot < 0
+    if zeno_time is None:
+        return pressed & (rebound * rebound <= 2.0 * tolerance * -f_ddot)
+    return pressed & (2.0 * rebound < -f_ddot * zeno_time)
+
+
+def impacts_to_rest(
+    system, q, qd, t, t1, args, active, unilateral, zeno_time: float | None, tolerance
+) -> tuple[Array, Array]:
+    r"""``(impacts, row)`` at a state just after a rebound: how many more impacts the
+    accumulation of impacts on a unilateral row needs until one ends it (`ends_accumulation`)
+    or until ``t1``, by the geometric series, and which row (NaN and −1 if no row accumulates).
+
+    A row rebounding (inactive, touching, ``ḟ = v > 0``) under a constant pressing ``f̈ = −a``
+    with restitution ``0 < e < 1`` lands after ``2v/a``; its j-th next impact approaches at
+    ``v e^(j−1)`` and would rebound at ``v e^j``, after flights summing to
+    ``(2v/a)(1 − e^j)/(1 − e)``. The accumulation ends at the first ``j`` with
+    ``(v e^j)² ≤ 2 tol a`` (``2 v e^j / a < zeno_time``), or the run at ``t1`` after the ``j``
+    with ``(2v/a)(1 − e^j)/(1 − e) ≤ t1 − t``. For the advice of ``FailureCode.MAX_SEGMENTS``:
+    counting the segments at the rate so far extrapolates linearly and undercounts a geometric
+    sequence by orders of magnitude."""
+    m_h = active.shape[0]
+    dtype = q.dtype
+    e = restitution_rows(system, m_h, dtype)
+    f, f_dot, jac, gamma = holonomic_terms(system, q, qd, t, args)
+    qdd = accelerations_and_multipliers(system, q, qd, t, args, active=active)[0]
+    a = -(jac @ qdd + gamma)
+    v = f_dot
+    bouncing = unilateral & ~active & (jnp.abs(f) <= tolerance) & (v > 0) & (a > 0) & (e > 0) & (e < 1)
+    safe_e = jnp.where(bouncing, e, 0.5)
+    safe_v = jnp.where(bouncing, v, 1.0)
+    safe_a = jnp.where(bouncing, a, 1.0)
+    log_e = jnp.log(safe_e)
+    if zeno_time is None:
+        to_rest = jnp.log(2.0 * tolerance * safe_a / safe_v**2) / (2.0 * log_e)
+    else:
+        to_rest = jnp.log(zeno_time * safe_a / (2.0 * safe_v)) / log_e
+    to_rest = jnp.maximum(jnp.ceil(to_rest), 1.0)
+    flight = 2.0 * safe_v / safe_a
+    left = 1.0 - (jnp.asarray(t1, dtype) - t) * (1.0 - safe_e) / flight
+    to_end = jnp.where(left > 0, jnp.floor(jnp.log(jnp.where(left > 0, left, 1.0)) / log_e), jnp.inf)
+    impacts = jnp.where(bouncing, jnp.minimum(to_rest, to_end), -jnp.inf)
+    row = jnp.argmax(impacts)
+    found = jnp.any(bouncing)
+    return jnp.where(found, impacts[row], jnp.nan), jnp.where(found, row, -1).astype(jnp.int32)
+
+
 def impact(
     system,
     q,
@@ -170,7 +255,8 @@ def impact(
 
     ``active``: the rows acting before the impact; ``forced``: rows that impact whatever their
     gap (the contact that ended the segment); ``excluded``: rows that must not impact (one just
-    released). Other inactive unilateral rows impact when they touch (``f_i ≤ tolerance``) and
+    released); ``zeno_time``: ``Events.zeno_time`` (``None``: the default rule of
+    `ends_accumulation`). Other inactive unilateral rows impact when they touch (``f_i ≤ tolerance``) and
     approach (``ḟ_i < 0``), or are violated (``f_i < −tolerance``, after a user's reset). With
     no impacting row this is the velocity projection onto the acting rows (``Λ ≈ 0`` when the
     state is consistent). See the module docstring for the law.
@@ -185,9 +271,8 @@ def impact(
     # Normal acceleration with the rows acting before the impact: f̈ = J q̈ + γ.
     qdd = accelerations_and_multipliers(system, q, qd, t, args, active=active)[0]
     f_ddot = jac @ qdd + gamma
-    # Zeno: the rebound would fly τ = 2 e |ḟ⁻| / |f̈| < zeno_time (written without a division).
-    zeno = 2.0 * e * jnp.abs(f_dot) < -f_ddot * zeno_time
-    e = jnp.where(zeno, 0.0, e)
+    # Zeno: the rebound would end an accumulation of impacts; it is plastic.
+    e = jnp.where(ends_accumulation(e * jnp.abs(f_dot), f_ddot, zeno_time, tolerance), 0.0, e)
     target = jnp.where(impacting, -e * f_dot, 0.0)  # ḟ⁺ on the rows of S
     rows, change = jac, target - f_dot
     if system.velocity_constraints is not None:

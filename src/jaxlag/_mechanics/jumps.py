@@ -34,6 +34,7 @@ class Jump(eqx.Module):
     impulses: Float[Array, " m_h"]  # Λ; zero where nothing jumped
     release_index: Int[Array, ""]  # the released row (if one was)
     contact_index: Int[Array, ""]  # the row that made contact (if one did)
+    rebounded: Bool[Array, ""]  # ... and rebounded from it (restitution): an IMPACT, not a CONTACT
 
 
 class SegmentEnd(eqx.Module):
@@ -71,7 +72,7 @@ class AbstractJumpLaw(eqx.Module):
 
 def _unjumped(end: SegmentEnd, active) -> Jump:
     zero = jnp.asarray(0)
-    return Jump(end.q, end.qd, active, jnp.zeros((0,), end.q.dtype), zero, zero)
+    return Jump(end.q, end.qd, active, jnp.zeros((0,), end.q.dtype), zero, zero, jnp.asarray(False))
 
 
 class NoJump(AbstractJumpLaw):
@@ -141,6 +142,7 @@ class ImpactJump(AbstractJumpLaw):
             impulses=jnp.where(jumped, impulses, 0.0),
             release_index=release_index,
             contact_index=contact_index,
+            rebounded=end.contacted & rebound[contact_index],
         )
 
 
