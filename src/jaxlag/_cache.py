@@ -205,7 +205,7 @@ def _last_verified_ns(path: Path) -> int:
 def _mark_verified(path: Path, when_ns: int) -> None:
     marker = path / _VERIFIED
     os.close(os.open(marker, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, 0o600))
-    os.utime(marker, ns=(when_ns, when_ns), follow_symlinks=False)
+    os.utime(marker, ns=(when_ns, when_ns))
 
 
 def _repair_entries(path: Path, entries: list[tuple[Path, os.stat_result]]) -> None:
@@ -215,7 +215,9 @@ def _repair_entries(path: Path, entries: list[tuple[Path, os.stat_result]]) -> N
     since_ns = _last_verified_ns(path) - _CLOCK_SLACK_NS  # coarse file-system timestamps
     damaged = []
     for where, info in entries:
-        with contextlib.suppress(FileNotFoundError):  # JAX's LRU eviction may remove entries
+        # Best effort: an entry JAX's LRU eviction removed meanwhile, or a read-only file system,
+        # leaves that entry as it is (in the private directory it is safe whatever its mode).
+        with contextlib.suppress(OSError):
             if where.name.endswith(_TEMPORARY_SUFFIXES):
                 if time.time() - info.st_mtime > _STALE_SECONDS:
                     os.unlink(where)
@@ -225,8 +227,9 @@ def _repair_entries(path: Path, entries: list[tuple[Path, os.stat_result]]) -> N
                 damaged.append(where.name)
                 continue
             if stat.S_IMODE(info.st_mode) & 0o077:
-                os.chmod(where, 0o600, follow_symlinks=False)
-    _mark_verified(path, started_ns)
+                os.chmod(where, 0o600)  # a regular file, just checked
+    with contextlib.suppress(OSError):  # not recorded: the next call reads them again
+        _mark_verified(path, started_ns)
     if damaged:
         warnings.warn(
             f"Removed {len(damaged)} damaged compilation cache entries from {str(path)!r} (truncated "
