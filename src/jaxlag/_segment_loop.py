@@ -53,6 +53,7 @@ from ._mechanics.resets import AbstractResets, resets_for
 from ._segment_conditions import SegmentConditions, condition_dtype, condition_values, sides_from
 from ._simulation_inputs import SimulationInputs
 from ._solver.guard import guard
+from ._solver.save_times import SaveTimes, saved_values
 from ._solver.step_once import StepOnce
 from ._stabilization import Baumgarte, Projection, stages_for_adjoint, wrap_for_projection
 from ._system import System
@@ -168,19 +169,19 @@ def _solve_segment(loop: _Loop, carry: _SegmentCarry, segment: SegmentConditions
     solver = stages_for_adjoint(loop.solver, loop.adjoint)  # diffrax does not see it in StepOnce
     if loop.projection is not None:
         solver = wrap_for_projection(solver, loop.system, loop.projection, loop.adjoint, carry.active)
+    # The save times through SaveTimes and dt0 through the guard: diffrax's own checks of them
+    # are compiled in as host callbacks, which keep the program out of JAX's persistent cache.
+    save_ts = jnp.clip(loop.ts, carry.t, loop.t1)
     solution = diffrax.diffeqsolve(
         diffrax.ODETerm(EquationsOfMotion(loop.system, loop.baumgarte, carry.active, carry.modes)),
-        StepOnce(solver),  # traced once, not once per diffrax body trace
+        SaveTimes.for_adjoint(StepOnce(solver), save_ts, loop.adjoint),  # StepOnce: traced once
         carry.t,
         loop.t1,
-        loop.dt0,
+        None,
         (carry.q, carry.qd),
         loop.args,
-        saveat=diffrax.SaveAt(
-            subs=[diffrax.SubSaveAt(ts=jnp.clip(loop.ts, carry.t, loop.t1)), diffrax.SubSaveAt(t1=True)],
-            controller_state=True,
-        ),
-        stepsize_controller=guard(loop.controller),
+        saveat=diffrax.SaveAt(t1=True, solver_state=True, controller_state=True),
+        stepsize_controller=guard(loop.controller, loop.dt0),
         adjoint=loop.adjoint,
         event=segment.diffrax_event(loop.root_finder),
         max_steps=loop.max_steps,
@@ -188,8 +189,9 @@ def _solve_segment(loop: _Loop, carry: _SegmentCarry, segment: SegmentConditions
         progress_meter=loop.progress_meter,
     )
     if solution.ts is None or solution.ys is None:  # the SaveAt above saves both
-        raise RuntimeError("jaxlag: diffrax returned no saved times or states for an event segment.")
-    (saved_q, saved_qd), (final_q, final_qd) = solution.ys
+        raise RuntimeError("jaxlag: diffrax returned no final time or state for an event segment.")
+    saved_q, saved_qd = saved_values(solution, save_ts, carry.t, loop.t1, (carry.q, carry.qd), loop.args)
+    final_q, final_qd = solution.ys
     this = from_solution(
         solution,
         carry.t,
@@ -204,7 +206,7 @@ def _solve_segment(loop: _Loop, carry: _SegmentCarry, segment: SegmentConditions
     broken = failure.code != FailureCode.COMPLETED
     fired = tuple(jnp.asarray(x) & ~carry.done & ~broken for x in jax.tree.leaves(solution.event_mask))
     return _SolvedSegment(
-        t=jnp.where(broken, loop.t1, solution.ts[1][0]),
+        t=jnp.where(broken, loop.t1, solution.ts[0]),
         q=jnp.where(broken, carry.q, final_q[0]),
         qd=jnp.where(broken, carry.qd, final_qd[0]),
         saved_q=saved_q,
