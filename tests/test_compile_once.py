@@ -6,7 +6,7 @@ when called eagerly: each must be free of host callbacks. Two fresh processes ru
 script on one cache directory; in the second, every compile request must be a cache hit
 (``jax.monitoring``'s ``compile_requests_use_cache`` and ``cache_hits`` events). The script:
 the README example, its first ``jax.grad``, a ``simulate_batch`` and a constant-step solve with
-``dt0``."""
+``dt0`` and a bouncing ball (the segment loop of events)."""
 
 import json
 import os
@@ -50,6 +50,11 @@ _SCRIPT = textwrap.dedent(
     fixed = jl.simulate(pendulum, jnp.array([0.5]), jnp.zeros(1), jnp.linspace(0, 1, 11), args={"g": 9.81},
                         solver=jl.RK4(), stepsize_controller=diffrax.ConstantStepSize(), dt0=0.01)
     jax.block_until_ready(fixed.q)
+    ball = jl.System(lambda q, qd: 0.5 * qd[0] ** 2 - 9.81 * q[0], lambda q: q[:1],
+                     unilateral=jl.Unilateral(0, restitution=0.8))
+    bounces = jl.simulate(ball, jnp.array([1.0]), jnp.zeros(1), jnp.linspace(0.0, 2.0, 51),
+                          events=jl.Events(max_segments=16))
+    jax.block_until_ready(bounces.q)
     print("COUNTS " + json.dumps(counts))
     """
 )
