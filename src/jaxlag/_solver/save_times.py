@@ -23,6 +23,7 @@ mode, a plain ``lax.while_loop`` otherwise).
 """
 
 from collections.abc import Callable
+from typing import Literal
 
 import diffrax
 import equinox as eqx
@@ -42,7 +43,10 @@ class SavedTimesState(eqx.Module):
     values: PyTree[Array]
 
 
-def _loop_kind(adjoint: diffrax.AbstractAdjoint) -> str:
+_LoopKind = Literal["lax", "checkpointed", "bounded"]
+
+
+def _loop_kind(adjoint: diffrax.AbstractAdjoint) -> _LoopKind:
     """The kind of ``eqxi.while_loop`` that diffrax uses for its own save loop under ``adjoint``."""
     if isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint):
         return "checkpointed"
@@ -62,7 +66,7 @@ class SaveTimes(ForwardingSolver, diffrax.AbstractWrappedSolver):
     solver: diffrax.AbstractSolver  # pyright: ignore[reportIncompatibleVariableOverride]
     ts: Float[Array, " T"]
     fn: Callable = eqx.field(static=True, default=_save_y)
-    loop_kind: str = eqx.field(static=True, default="lax")
+    loop_kind: _LoopKind = eqx.field(static=True, default="lax")
 
     @classmethod
     def for_adjoint(cls, solver, ts, adjoint, fn: Callable = _save_y) -> "SaveTimes":
