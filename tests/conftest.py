@@ -44,6 +44,26 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 # pages of the docs run with JAX's default ("standard") promotion, as users' scripts do.
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
+# As diffrax's and equinox's suites (their `--jaxtyping-packages=...,beartype.beartype`): every
+# function and Module of jaxlag imported from here on is checked against its annotations while
+# the tests run, jaxtyping's shapes included ("n" is the same n across one call's arguments).
+# The hook rewrites modules as they are imported, so it is installed before anything imports
+# jaxlag (this conftest is loaded before the test modules are collected); subprocesses that the
+# tests start import jaxlag unchecked. JAXLAG_TEST_TYPECHECK=0 turns it off.
+if os.environ.get("JAXLAG_TEST_TYPECHECK", "1") != "0":
+    import sys  # noqa: E402
+
+    from jaxtyping import install_import_hook  # noqa: E402
+
+    assert "jaxlag" not in sys.modules, "jaxlag was imported before the type-checking import hook"
+    # `float` accepts an int, as it does for the static type checker (PEP 484's numeric tower);
+    # every item of a container is checked, as in diffrax's suite (BeartypeStrategy.On).
+    install_import_hook(
+        "jaxlag",
+        "beartype.beartype(conf=beartype.BeartypeConf("
+        "is_pep484_tower=True, strategy=beartype.BeartypeStrategy.On))",
+    )
+
 import pytest  # noqa: E402
 
 

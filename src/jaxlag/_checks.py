@@ -529,7 +529,7 @@ def _batched_initial_message(static: _Static, payload) -> str | None:
     return batch_prefix(index, flags, members) + (text or "")
 
 
-def validate_initial_state(system, q, qd, t, args, tolerance: float | None):
+def validate_initial_state(system, q, qd, t, args, tolerance: float | Float[Array, ""] | None):
     """Check the initial state; return ``(q, qd)`` (threaded through the run-time checks).
 
     Concrete inputs raise ``ValueError`` here, with the numbers; traced ones compile the check

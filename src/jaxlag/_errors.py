@@ -45,6 +45,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int, PyTree
 
 from ._solver.guard import GuardState
@@ -260,11 +261,11 @@ def first_failure(earlier: Failure, later: Failure) -> Failure:
 _MESSAGES = tuple(code.message for code in FailureCode)
 
 
-def error_if_failed(failure: Failure, x: PyTree[Array]) -> PyTree[Array]:
+def error_if_failed(failure: Failure, x: PyTree[Array | np.ndarray]) -> PyTree[Array | np.ndarray]:
     """Compiled counterpart of `jaxlag._diagnosis.raise_if_failed`: ``x`` (a pytree of
-    floating-point arrays), or an ``eqx.branched_error_if`` with the static
-    `FailureCode.message` of the failure's code (the record itself stays in the
-    trajectory).
+    floating-point arrays: JAX arrays, or NumPy constants that tracing left on the host), or an
+    ``eqx.branched_error_if`` with the static `FailureCode.message` of the failure's code (the
+    record itself stays in the trajectory).
 
     The check must survive dead-code elimination in programs that use only derivatives of ``x``
     (``jax.jit(jax.grad(...))`` of an event time reads no primal output): the tangents of ``x``

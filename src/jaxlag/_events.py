@@ -50,6 +50,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from ._conventions import UserFunction, wrap_event_function, wrap_state_function
+from ._custom_types import Validated
 
 
 class EventKind(enum.IntEnum):
@@ -303,10 +304,10 @@ class Events(eqx.Module):
 
     def __init__(
         self,
-        *conditions: Event,
-        max_segments: int = 8,
-        root_finder: optx.AbstractRootFinder = _DEFAULT_ROOT_FINDER,
-        zeno_time: float | None = None,
+        *conditions: Validated[Event],
+        max_segments: Validated[int] = 8,
+        root_finder: Validated[optx.AbstractRootFinder] = _DEFAULT_ROOT_FINDER,
+        zeno_time: Validated[float | None] = None,
     ):
         for condition in conditions:
             if not isinstance(condition, Event):

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
-from ._custom_types import RealScalarLike
+from ._custom_types import RealScalarLike, Validated
 from ._misc import is_concrete
 
 _TS_MESSAGE = "A time table's `ts` must be finite and strictly increasing (t₀ < t₁ < … < t_{N−1})."
@@ -52,7 +52,9 @@ class AbstractTimeTable(eqx.Module):
     #: the fewest samples the interpolation needs.
     min_samples: ClassVar[int] = 2
 
-    def __init__(self, ts: Float[ArrayLike, " N"], values: Float[ArrayLike, " N *shape"]):
+    def __init__(
+        self, ts: Validated[Float[ArrayLike, " N"]], values: Validated[Float[ArrayLike, " N *shape"]]
+    ):
         name = type(self).__name__
         times = _as_float_array(ts, "ts")
         samples = _as_float_array(values, "values")
@@ -210,7 +212,7 @@ def _tables(tree) -> list[AbstractTimeTable]:
 
 
 def with_breakpoints(
-    controller: diffrax.AbstractAdaptiveStepSizeController, *tables: PyTree
+    controller: Validated[diffrax.AbstractAdaptiveStepSizeController], *tables: PyTree
 ) -> diffrax.ClipStepSizeController:
     """``controller`` told to step onto the breakpoints of ``tables``.
 

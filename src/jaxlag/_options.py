@@ -17,7 +17,7 @@ from typing_extensions import TypedDict
 
 from ._adjoint import ForwardSensitivities
 from ._checks import Checks
-from ._custom_types import RealScalarLike
+from ._custom_types import RealScalarLike, Validated
 from ._events import Event, Events
 from ._simulate import simulate
 from ._stabilization import Baumgarte, Projection
@@ -37,14 +37,14 @@ class SimulateOptions(TypedDict, total=False):
     dt0: RealScalarLike | None
     saveat: diffrax.SaveAt | None
     max_steps: int | None
-    adjoint: diffrax.AbstractAdjoint | ForwardSensitivities | None
+    adjoint: Validated[diffrax.AbstractAdjoint | ForwardSensitivities | None]
     event: diffrax.Event | None
     throw: bool
     progress_meter: diffrax.AbstractProgressMeter | None
     baumgarte: Baumgarte | None
-    projection: Projection | None
-    checks: Checks
-    events: Events | Event | Sequence[Event]
+    projection: Validated[Projection | None]
+    checks: Validated[Checks]
+    events: Validated[Events | Event | Sequence[Event]]
 
 
 # simulate's defaults, read from its signature (a name missing there fails here, at import).

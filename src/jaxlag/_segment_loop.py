@@ -30,7 +30,7 @@ implementation, chosen once per run, so the loop never asks whether a feature is
     record and advance     -> _record, _advance
 """
 
-from typing import Any, Protocol
+from typing import Protocol, runtime_checkable
 
 import diffrax
 import equinox as eqx
@@ -41,6 +41,7 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from . import _compile as compilation
 from ._checks import initial_activity, validate_initial_state
+from ._custom_types import RealScalarLike
 from ._errors import Failure, FailureCode, first_failure, from_solution
 from ._events import Event, EventKind, EventLog, Events, root_finder_for
 from ._mechanics.constant_mass import with_constant_mass
@@ -70,7 +71,7 @@ class _Loop(eqx.Module):
     args: PyTree
     ts: Float[Array, " saves"]
     t1: Float[Array, ""]
-    dt0: Float[Array, ""] | float | None
+    dt0: RealScalarLike | None
     solver: diffrax.AbstractSolver
     controller: diffrax.AbstractStepSizeController
     adjoint: diffrax.AbstractAdjoint
@@ -637,13 +638,14 @@ def _event_log(records: _SegmentRecord, count) -> EventLog:
     )
 
 
+@runtime_checkable
 class _RunOptions(Protocol):
     """The options of a run that are not inputs (``simulate``'s ``_Run``)."""
 
     max_steps: int | None
     progress_meter: diffrax.AbstractProgressMeter
     check: bool
-    tolerance: Any
+    tolerance: float | Float[Array, ""]
 
 
 class _SegmentedSolution(eqx.Module):
@@ -655,7 +657,14 @@ class _SegmentedSolution(eqx.Module):
     modes: Int[Array, "saves k"]
     log: EventLog
     failure: Failure
-    stats: dict[str, Any]
+    # diffrax's step counts summed over the segments, "num_segments", and the static "max_steps".
+    stats: dict[str, Int[Array, ""] | int | None]
+
+
+def _save_times(inputs: SimulationInputs) -> Float[Array, " saves"]:
+    if inputs.ts is None:  # simulate refuses a segmented run without them
+        raise RuntimeError("jaxlag: a segmented run needs save times ts.")
+    return inputs.ts
 
 
 @compilation.filter_jit
@@ -682,8 +691,8 @@ def _solve_segments(
     loop = _Loop(
         system=system,
         args=args,
-        ts=i.ts,
-        t1=i.t1,
+        ts=_save_times(i),
+        t1=jnp.asarray(i.t1, dtype),
         dt0=i.dt0,
         solver=i.solver,
         controller=i.stepsize_controller,
@@ -727,7 +736,7 @@ def solve_segments(*, inputs: SimulationInputs, events: Events, run: _RunOptions
     solution = _solve_segments(inputs, events, run, adjoint)
     return Trajectory.from_states(
         inputs.system,
-        inputs.ts,
+        _save_times(inputs),
         solution.q,
         solution.qd,
         inputs.args,

@@ -10,6 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float
 
 from . import _compile as compilation
 from . import _diagnosis
@@ -23,7 +24,7 @@ from ._adjoint import (
 )
 from ._checks import Checks, validate_initial_state
 from ._conventions import as_array_leaves, as_float_state, as_jax_array
-from ._custom_types import Args, Coordinates, RealScalarLike, SaveTimes, Velocities
+from ._custom_types import Args, Coordinates, RealScalarLike, SaveTimes, Validated, Velocities
 from ._events import Event, Events, as_events
 from ._inputs import controller_for_args
 from ._mechanics.constant_mass import with_constant_mass
@@ -316,7 +317,7 @@ class _Run(AbstractPushingRun):
     max_steps: int | None = eqx.field(static=True)
     progress_meter: diffrax.AbstractProgressMeter
     check: bool = eqx.field(static=True)
-    tolerance: RealScalarLike
+    tolerance: float | Float[Array, ""]
 
     def may_solve_with_tangents(self, inputs: SimulationInputs) -> bool:
         """Whether `solves_with_tangents` holds for some perturbed inputs (those of the
@@ -400,14 +401,14 @@ def simulate(
     dt0: RealScalarLike | None = None,
     saveat: diffrax.SaveAt | None = None,
     max_steps: int | None = 2**16,
-    adjoint: diffrax.AbstractAdjoint | ForwardSensitivities | None = None,
+    adjoint: Validated[diffrax.AbstractAdjoint | ForwardSensitivities | None] = None,
     event: diffrax.Event | None = None,
     throw: bool = True,
     progress_meter: diffrax.AbstractProgressMeter | None = None,
     baumgarte: Baumgarte | None = None,
-    projection: Projection | None = Projection(),
-    checks: Checks = Checks(),
-    events: Events | Event | Sequence[Event] = Events(),
+    projection: Validated[Projection | None] = Projection(),
+    checks: Validated[Checks] = Checks(),
+    events: Validated[Events | Event | Sequence[Event]] = Events(),
 ) -> Trajectory:
     """Integrate the equations of motion of ``system`` from ``(q0, qd0)``.
 
@@ -491,7 +492,7 @@ def simulate(
             ts = eqx.error_if(ts, ~jnp.all(jnp.diff(ts) > 0), _SAVE_TIMES)
         if saveat is None and t0 is None and t1 is None:
             # Checked above (or compiled in): saved without diffrax's checks (host callbacks).
-            saveat = diffrax.SaveAt(subs=diffrax.SubSaveAt(ts=ts, fn=save_checked_state))
+            saveat = diffrax.SaveAt(subs=diffrax.SubSaveAt(ts=cast(jax.Array, ts), fn=save_checked_state))
         elif saveat is None:
             saveat = diffrax.SaveAt(ts=cast(jax.Array, ts))  # an array since as_jax_array above
         t0 = ends[0] if t0 is None else t0
@@ -547,7 +548,7 @@ def simulate(
         qd0=qd0,
         t0=t0,
         t1=t1,
-        ts=ts,
+        ts=cast("jax.Array | None", ts),  # as_jax_array above
         dt0=dt0,
         args=args,
         saveat=saveat,

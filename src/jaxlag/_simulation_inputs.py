@@ -1,10 +1,10 @@
 """The inputs of one simulation: what ``jax.grad`` may differentiate."""
 
-from typing import Any
-
 import diffrax
 import equinox as eqx
+from jaxtyping import Array, Float, PyTree
 
+from ._custom_types import RealScalarLike
 from ._events import Events
 from ._stabilization import Baumgarte, Projection
 from ._system import System
@@ -17,13 +17,13 @@ class SimulationInputs(eqx.Module):
     read when the run is segmented); ``event``: a diffrax event (plain solves only)."""
 
     system: System
-    q0: Any
-    qd0: Any
-    t0: Any
-    t1: Any
-    ts: Any
-    dt0: Any
-    args: Any
+    q0: Float[Array, " n"]
+    qd0: Float[Array, " n"]
+    t0: RealScalarLike  # a 0-d array of q0's dtype; NumPy while concrete (simulate's _as_time)
+    t1: RealScalarLike
+    ts: Float[Array, " times"] | None
+    dt0: RealScalarLike | None
+    args: PyTree
     saveat: diffrax.SaveAt
     solver: diffrax.AbstractSolver
     stepsize_controller: diffrax.AbstractStepSizeController

@@ -16,7 +16,7 @@ from ._conventions import (
     wrap_state_function,
 )
 from ._conventions import _wrap as _wrap_function
-from ._custom_types import Args, Coordinates, Matrix, RealScalarLike, Scalar, Vector, Velocities
+from ._custom_types import Args, Coordinates, Matrix, RealScalarLike, Scalar, Validated, Vector, Velocities
 from ._mechanics import constraints as _constraints
 from ._mechanics import kkt as _kkt
 from ._mechanics import lagrangian as _mechanics
@@ -97,19 +97,19 @@ class System(eqx.Module):
 
     def __init__(
         self,
-        lagrangian: Callable,
-        holonomic: Callable | None = None,
+        lagrangian: Validated[Callable],
+        holonomic: Validated[Callable | None] = None,
         *,
-        velocity_constraints: Callable | None = None,
-        dissipation: Callable | None = None,
-        forces: Callable | None = None,
-        actuation: Callable | None = None,
-        control: Callable | None = None,
+        velocity_constraints: Validated[Callable | None] = None,
+        dissipation: Validated[Callable | None] = None,
+        forces: Validated[Callable | None] = None,
+        actuation: Validated[Callable | None] = None,
+        control: Validated[Callable | None] = None,
         least_squares: bool = False,
-        unilateral: int | Sequence[int] | Unilateral = (),
+        unilateral: Validated[int | Sequence[int] | Unilateral] = (),
         diagonal_mass: bool = False,
-        mass_solve: AbstractMassSolve = CheckedCholesky(),
-        friction: Coulomb | Sequence[Coulomb] | None = None,
+        mass_solve: Validated[AbstractMassSolve] = CheckedCholesky(),
+        friction: Validated[Coulomb | Sequence[Coulomb] | None] = None,
     ):
         self.lagrangian = wrap_state_function(lagrangian, "lagrangian")
         self.holonomic = wrap_configuration_function(holonomic, "holonomic constraint function")

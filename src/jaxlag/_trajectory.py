@@ -205,7 +205,11 @@ class Trajectory(eqx.Module):
         return self._get("lagrangian")
 
     @property
-    def constraint_residuals(self) -> tuple[Multipliers, Multipliers, Multipliers]:
+    def constraint_residuals(
+        self,
+    ) -> tuple[
+        Float[Array, "*batch times m_h"], Float[Array, "*batch times m_h"], Float[Array, "*batch times m_v"]
+    ]:
         """``(f, ḟ, g)`` along the trajectory: shapes (T, m_h), (T, m_h), (T, m_v)."""
         return self._get("constraint_residuals")
 

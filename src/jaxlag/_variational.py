@@ -57,7 +57,8 @@ Which structure ``L`` has is read off its jaxpr (a static, conservative dependen
 numerically at the initial state instead.
 """
 
-from typing import Any, ClassVar, NamedTuple, cast
+import dataclasses
+from typing import ClassVar, NamedTuple, cast
 
 import diffrax
 import equinox as eqx
@@ -66,11 +67,12 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 from jax.typing import ArrayLike
+from jaxtyping import Array, Float, Int
 
 from . import _compile as compilation
 from ._checks import Checks, validate_initial_state
 from ._conventions import as_array_leaves
-from ._custom_types import Args, Coordinates, RealScalarLike, Velocities
+from ._custom_types import Args, Coordinates, RealScalarLike, Validated, Velocities
 from ._mechanics import constraints as _constraints
 from ._mechanics.dependence import may_depend
 from ._mechanics.kkt import accelerations_and_multipliers, solve_kkt
@@ -254,16 +256,22 @@ class _Scheme(eqx.Module):
         return optx.Newton(rtol=self.rtol, atol=self.atol)
 
 
-class _Step(NamedTuple):
-    q: Any
-    p: Any
-    qd: Any
-    lam: Any  # position-stage multiplier λ_k
-    mu: Any  # velocity-stage multiplier μ_k
-    local: Any  # (J, ∂L/∂q) at the new state, reused by the next step
-    secant: Any  # Δq/h
-    iterations: Any
-    result: Any
+# (J, ∂L/∂q) at a state, reused by the next step; None where the scheme does not use them.
+_Local = tuple[Float[Array, "m n"] | None, Float[Array, " n"] | None]
+
+
+class _Step(eqx.Module):
+    """What one step returns: the new state and its multipliers (``m`` holonomic rows)."""
+
+    q: Float[Array, " n"]
+    p: Float[Array, " n"]
+    qd: Float[Array, " n"]
+    lam: Float[Array, " m"]  # position-stage multiplier λ_k
+    mu: Float[Array, " m"]  # velocity-stage multiplier μ_k
+    local: _Local
+    secant: Float[Array, " n"]  # Δq/h
+    iterations: Int[Array, ""]
+    result: optx.RESULTS
 
 
 def _root(fn, y0, ctx, scheme):
@@ -394,19 +402,22 @@ def _step(scheme, system, args, constants, h, t0, q0, p0, local0, guess, qd_gues
 
 
 # --------------------------------------------------------------------------- the integration
-class _Carry(NamedTuple):
-    q: Any
-    p: Any
-    qd: Any
-    local: Any  # (J, ∂L/∂q) at q_k
-    secant: Any  # (q_k − q_{k−1})/h_{k−1} and h_{k−1}: for the Newton starting point
-    lams: Any  # the last two λ, for extrapolation
-    mu: Any  # μ_{k−1}: velocity-stage multiplier that brought the state to q_k
-    step: Any  # macro-step index k
-    iterations: Any  # total Newton iterations
-    max_iterations: Any
-    failed_step: Any  # first macro step whose Newton solve failed, −1 if none
-    result: Any
+class _Carry(eqx.Module):
+    """The state of the integration loop after step k (``m`` holonomic rows)."""
+
+    q: Float[Array, " n"]
+    p: Float[Array, " n"]
+    qd: Float[Array, " n"]
+    local: _Local  # (J, ∂L/∂q) at q_k
+    # (q_k − q_{k−1})/h_{k−1} and h_{k−1}: for the Newton starting point
+    secant: tuple[Float[Array, " n"], Float[Array, ""]]
+    lams: tuple[Float[Array, " m"], Float[Array, " m"]]  # the last two λ, for extrapolation
+    mu: Float[Array, " m"]  # μ_{k−1}: velocity-stage multiplier that brought the state to q_k
+    step: Int[Array, ""]  # macro-step index k
+    iterations: Int[Array, ""]  # total Newton iterations
+    max_iterations: Int[Array, ""]
+    failed_step: Int[Array, ""]  # first macro step whose Newton solve failed, −1 if none
+    result: optx.RESULTS
 
 
 def _substep(scheme, system, args, constants, h, t, carry: _Carry):
@@ -423,7 +434,8 @@ def _substep(scheme, system, args, constants, h, t, carry: _Carry):
     out = _step(scheme, system, args, constants, h, t, carry.q, carry.p, carry.local, guess, carry.qd)
     ok = out.result == optx.RESULTS.successful
     first_failure = (carry.failed_step < 0) & ~ok
-    new = carry._replace(
+    new = dataclasses.replace(
+        carry,
         q=out.q,
         p=out.p,
         qd=out.qd,
@@ -456,7 +468,9 @@ def _advance(scheme, system, args, constants, h, t0, carry: _Carry):
         schedule = (jnp.asarray(gammas, carry.q.dtype), jnp.asarray(offsets, carry.q.dtype))
         carry, (lams, iterations) = jax.lax.scan(sub, carry, schedule)
         first_lam, iterations = lams[0], jnp.sum(iterations, dtype=jnp.int32)
-    carry = carry._replace(step=carry.step + 1, max_iterations=jnp.maximum(carry.max_iterations, iterations))
+    carry = dataclasses.replace(
+        carry, step=carry.step + 1, max_iterations=jnp.maximum(carry.max_iterations, iterations)
+    )
     return carry, first_lam
 
 
@@ -538,7 +552,7 @@ def _integrate(scheme, system, q0, qd0, t0, dt, args, num_steps, save_every, thr
 
 
 def simulate_variational(
-    system: System,
+    system: Validated[System],
     q0: Coordinates,
     qd0: Velocities,
     *,
@@ -547,13 +561,13 @@ def simulate_variational(
     t0: RealScalarLike = 0.0,
     args: Args = None,
     save_every: int = 1,
-    method: AbstractVariationalMethod | None = None,
+    method: Validated[AbstractVariationalMethod | None] = None,
     order: int = 2,
     newton_rtol: float | None = None,
     newton_atol: float | None = None,
     max_newton_steps: int = 20,
     throw: bool = True,
-    checks: Checks = Checks(),
+    checks: Validated[Checks] = Checks(),
 ) -> Trajectory:
     r"""Integrate ``system`` with a constrained symplectic (variational / RATTLE) integrator.
 

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from ._conventions import wrap_configuration_function
-from ._custom_types import Args, Coordinates, Parameter, RealScalarLike, Velocities
+from ._custom_types import Args, Coordinates, Parameter, RealScalarLike, Validated, Velocities
 from .coordinates import RigidBody3D, parameter_value
 from .rotations import unskew
 
@@ -60,7 +60,7 @@ def _offset(centre, rotation, radius, shape, axis):
 
 
 def contact_point(
-    body: RigidBody3D,
+    body: Validated[RigidBody3D],
     q: Coordinates,
     radius: Parameter,
     *,
@@ -77,7 +77,7 @@ def contact_point(
 
 
 def contact_velocity(
-    body: RigidBody3D,
+    body: Validated[RigidBody3D],
     q: Coordinates,
     qd: Velocities,
     radius: Parameter,
@@ -95,7 +95,7 @@ def contact_velocity(
 
 
 def contact_height(
-    body: RigidBody3D, radius: Parameter, *, shape: str = "disk", axis: Axis = (0.0, 0.0, 1.0)
+    body: Validated[RigidBody3D], radius: Parameter, *, shape: str = "disk", axis: Axis = (0.0, 0.0, 1.0)
 ) -> Callable:
     """Holonomic contact ``f(q, t, args) = (P_z,)``: the body touches the plane ``z = 0``.
     Its multiplier is the normal force ``N`` (see the module docstring)."""
@@ -108,7 +108,7 @@ def contact_height(
 
 
 def rolling_without_slipping(
-    body: RigidBody3D,
+    body: Validated[RigidBody3D],
     radius: Parameter,
     *,
     shape: str = "disk",

@@ -38,7 +38,16 @@ from jaxtyping import Array, ArrayLike, Float
 from . import _compile as compilation
 from ._checks import AbstractLagrangianChecks
 from ._conventions import UserFunction, wrap_configuration_function
-from ._custom_types import Args, Coordinates, Parameter, RealScalarLike, Scalar, Vector, Velocities
+from ._custom_types import (
+    Args,
+    Coordinates,
+    Parameter,
+    RealScalarLike,
+    Scalar,
+    Validated,
+    Vector,
+    Velocities,
+)
 from ._misc import is_concrete
 from ._tolerances import MASS_RCOND, rcond
 from .rotations import euler_singularity, record_euler_calls, unskew
@@ -171,7 +180,11 @@ class RigidBody2D(eqx.Module):
         return _velocity(self.pose, jnp.asarray(q), jnp.asarray(qd), t, args)[1][2]
 
     def point_position(
-        self, q: Coordinates, point: Float[ArrayLike, "2"], t: RealScalarLike = 0.0, args: Args = None
+        self,
+        q: Coordinates,
+        point: Validated[Float[ArrayLike, "2"] | Sequence[RealScalarLike]],
+        t: RealScalarLike = 0.0,
+        args: Args = None,
     ) -> Float[Array, "2"]:
         """World position ``x_c + R(φ) r`` of the body point with body coordinates ``r`` (2,)."""
         x = jnp.asarray(self.pose(q, t=t, args=args))
@@ -183,7 +196,7 @@ class RigidBody2D(eqx.Module):
         self,
         q: Coordinates,
         qd: Velocities,
-        point: Float[ArrayLike, "2"],
+        point: Validated[Float[ArrayLike, "2"] | Sequence[RealScalarLike]],
         t: RealScalarLike = 0.0,
         args: Args = None,
     ) -> Float[Array, "2"]:
@@ -293,7 +306,11 @@ class RigidBody3D(eqx.Module):
         return unskew(rotation.T @ rate) if frame == "body" else unskew(rate @ rotation.T)
 
     def point_position(
-        self, q: Coordinates, point: Float[ArrayLike, "3"], t: RealScalarLike = 0.0, args: Args = None
+        self,
+        q: Coordinates,
+        point: Validated[Float[ArrayLike, "3"] | Sequence[RealScalarLike]],
+        t: RealScalarLike = 0.0,
+        args: Args = None,
     ) -> Float[Array, "3"]:
         """World position ``x_c + R r`` of the body point with body coordinates ``r`` (3,)."""
         x, rotation = self._pose(jnp.asarray(q), t, args)
@@ -303,7 +320,7 @@ class RigidBody3D(eqx.Module):
         self,
         q: Coordinates,
         qd: Velocities,
-        point: Float[ArrayLike, "3"],
+        point: Validated[Float[ArrayLike, "3"] | Sequence[RealScalarLike]],
         t: RealScalarLike = 0.0,
         args: Args = None,
     ) -> Float[Array, "3"]:
@@ -369,7 +386,7 @@ def kinetic_energy_from_positions(
     positions: Callable | None,
     masses: Parameter = 1.0,
     *,
-    bodies: Sequence[RigidBody2D | RigidBody3D] = (),
+    bodies: Validated[Sequence[RigidBody2D | RigidBody3D]] = (),
 ) -> Callable:
     r"""``T(q, q̇, t, args) = ½ Σ_k m_k |ẋ_k|² + Σ_b T_b`` for point masses and rigid bodies.
 
@@ -406,7 +423,7 @@ def lagrangian_from_positions(
     potential: Callable | None = None,
     *,
     gravity: Parameter | None = None,
-    bodies: Sequence[RigidBody2D | RigidBody3D] = (),
+    bodies: Validated[Sequence[RigidBody2D | RigidBody3D]] = (),
 ) -> Callable:
     r"""Build ``L(q, q̇, t, args) = T − V`` from where the mass is.
 

@@ -27,10 +27,10 @@ import equinox as eqx
 import jax
 import jax.extend.core as jcore
 import jax.numpy as jnp
-from jaxtyping import ArrayLike
+import numpy as np
 
 from ._conventions import UserFunction, wrap_configuration_function, wrap_state_function
-from ._custom_types import Args, RealScalarLike, Vector
+from ._custom_types import Args, RealArrayLike, RealScalarLike, Validated, Vector
 from .coordinates import RigidBody2D, RigidBody3D
 
 __all__ = ["Force", "Torque", "generalized_forces", "point_map"]
@@ -38,10 +38,10 @@ __all__ = ["Force", "Torque", "generalized_forces", "point_map"]
 _BODIES = (RigidBody2D, RigidBody3D)
 
 #: A body point ``(body, r)`` (``r`` its body coordinates) or a position map ``x(q, [t], [args])``.
-PointLike = tuple[RigidBody2D | RigidBody3D, ArrayLike] | Callable
+PointLike = tuple[RigidBody2D | RigidBody3D, RealArrayLike] | Callable
 
 
-def point_map(point: PointLike) -> UserFunction:
+def point_map(point: Validated[PointLike]) -> UserFunction:
     """A point as a position map ``x(q, [t], [args]) -> (d,)``.
 
     ``point`` is a ``(body, r)`` pair (a body point with body coordinates ``r``, on a
@@ -50,10 +50,10 @@ def point_map(point: PointLike) -> UserFunction:
     if isinstance(point, tuple) and len(point) == 2 and isinstance(point[0], _BODIES):
         body, offset = point
         size = 3 if isinstance(body, RigidBody3D) else 2
-        if jnp.shape(offset) != (size,):
+        if np.shape(offset) != (size,):
             raise ValueError(
                 f"A body point ({type(body).__name__}, r) takes r in body coordinates, shape "
-                f"({size},); got shape {jnp.shape(offset)}."
+                f"({size},); got shape {np.shape(offset)}."
             )
 
         def position(q, t, args):
@@ -90,7 +90,7 @@ class Force(eqx.Module):
     point: UserFunction
     force: UserFunction
 
-    def __init__(self, point: PointLike, force: Callable | ArrayLike):
+    def __init__(self, point: Validated[PointLike], force: Callable | RealArrayLike):
         self.point = point_map(point)
         self.force = _load_function(force, "force")
 
@@ -127,7 +127,7 @@ class Torque(eqx.Module):
     body: RigidBody2D | RigidBody3D
     torque: UserFunction
 
-    def __init__(self, body: RigidBody2D | RigidBody3D, torque: Callable | ArrayLike):
+    def __init__(self, body: Validated[RigidBody2D | RigidBody3D], torque: Callable | RealArrayLike):
         if not isinstance(body, _BODIES):
             raise TypeError(f"A torque acts on a RigidBody3D or RigidBody2D; got {type(body).__name__}.")
         self.body = body
@@ -181,7 +181,7 @@ def _world_rate(rotation, rate):
     return 0.5 * jnp.stack([w[2, 1] - w[1, 2], w[0, 2] - w[2, 0], w[1, 0] - w[0, 1]])
 
 
-def generalized_forces(*loads: Force | Torque | Sequence[Force | Torque]) -> Callable:
+def generalized_forces(*loads: Validated[Force | Torque | Sequence[Force | Torque]]) -> Callable:
     r"""``Q(q, qd, t, args) = Σ (∂ẋ_p/∂q̇)ᵀ F_p + Σ (∂ω/∂q̇)ᵀ τ``: pass it as ``System(forces=...)``.
 
     Each load is a `Force` or a `Torque` (or a sequence of them).

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._custom_types import Validated
 from ._trajectory import Trajectory
 
 # matplotlib is optional and imported only when something is drawn, so its classes exist for the
@@ -170,10 +171,10 @@ def _log_scale(ax) -> None:
 
 # ----------------------------------------------------------------------------- mechanisms
 def chain(
-    points: Float[ArrayLike, "points dim"],
+    points: Validated[Float[ArrayLike, "points dim"]],
     *,
     ax: Axes | None = None,
-    origin: Float[ArrayLike, " dim"] | None = None,
+    origin: Validated[Float[ArrayLike, " dim"]] | None = None,
     closed: bool = False,
     **line_kwargs: Any,
 ) -> Line2D:
@@ -199,11 +200,11 @@ def chain(
 
 def snapshots(
     positions: Callable[[Float[Array, " n"]], Float[ArrayLike, "points dim"]],
-    traj: Trajectory | Float[ArrayLike, "times n"],
+    traj: Validated[Trajectory | Float[ArrayLike, "times n"]],
     *,
     frames: int | Sequence[int] = 5,
     ax: Axes | None = None,
-    origin: Float[ArrayLike, " dim"] | None = None,
+    origin: Validated[Float[ArrayLike, " dim"]] | None = None,
     closed: bool = False,
     fade: tuple[float, float] = (0.2, 1.0),
     **line_kwargs: Any,
@@ -233,8 +234,8 @@ def snapshots(
 
 
 def body_axes(
-    x_c: Float[ArrayLike, "3"],
-    R: Float[ArrayLike, "3 3"],
+    x_c: Validated[Float[ArrayLike, "3"]],
+    R: Validated[Float[ArrayLike, "3 3"]],
     *,
     ax: Axes | None = None,
     length: float = 1.0,
@@ -276,7 +277,7 @@ def energy(
     traj: Trajectory,
     *,
     ax: Axes | None = None,
-    values: Float[ArrayLike, " times"] | None = None,
+    values: Validated[Float[ArrayLike, " times"]] | None = None,
     scale: float | None = None,
     log: bool = True,
     **line_kwargs: Any,
@@ -390,11 +391,11 @@ def animate(
 
 def animate_chain(
     positions: Callable[[Float[Array, " n"]], Float[ArrayLike, "points 2"]],
-    traj: Trajectory | Float[ArrayLike, "times n"],
+    traj: Validated[Trajectory | Float[ArrayLike, "times n"]],
     path: str | pathlib.Path,
     *,
     every: int = 1,
-    origin: Float[ArrayLike, "2"] | None = None,
+    origin: Validated[Float[ArrayLike, "2"]] | None = None,
     closed: bool = False,
     trace: int | None = -1,
     fps: int = 20,

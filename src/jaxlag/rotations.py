@@ -49,7 +49,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._conventions import wrap_configuration_function
-from ._custom_types import Args, Coordinates, RealScalarLike, Velocities
+from ._custom_types import Args, Coordinates, RealScalarLike, Validated, Velocities
 
 __all__ = [
     "angular_velocity",
@@ -105,7 +105,7 @@ def euler_singularity(sequence: str) -> str:
     return "the middle angle a₂ = ±π/2 (Tait–Bryan angles: a₁ and a₃ then turn about the same axis)"
 
 
-def gimbal_lock_margin(angles: Float[ArrayLike, "3"], sequence: str = "zxz") -> Float[Array, ""]:
+def gimbal_lock_margin(angles: Validated[Float[ArrayLike, "3"]], sequence: str = "zxz") -> Float[Array, ""]:
     """Distance of the Euler angles ``(a₁, a₂, a₃)`` from gimbal lock: ``|sin a₂|`` for proper
     Euler sequences (first axis = last, singular at ``a₂ = 0, π``), ``|cos a₂|`` for
     Tait–Bryan sequences (singular at ``a₂ = ±π/2``). It vanishes exactly where the map from
@@ -127,7 +127,7 @@ def _float(x):
     return x
 
 
-def skew(vector: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
+def skew(vector: Validated[Float[ArrayLike, "3"]]) -> Float[Array, "3 3"]:
     """``[v]ₓ``, the matrix with ``[v]ₓ r = v × r``."""
     v = _float(vector)
     if v.shape != (3,):
@@ -142,7 +142,7 @@ def skew(vector: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
     )
 
 
-def unskew(matrix: Float[ArrayLike, "3 3"]) -> Float[Array, "3"]:
+def unskew(matrix: Validated[Float[ArrayLike, "3 3"]]) -> Float[Array, "3"]:
     """The vector ``v`` of the skew part of ``W``: ``½(W − Wᵀ) = [v]ₓ`` (inverse of `skew`)."""
     w = _float(matrix)
     if w.shape != (3, 3):
@@ -150,7 +150,7 @@ def unskew(matrix: Float[ArrayLike, "3 3"]) -> Float[Array, "3"]:
     return 0.5 * jnp.stack([w[2, 1] - w[1, 2], w[0, 2] - w[2, 0], w[1, 0] - w[0, 1]])
 
 
-def axis_rotation(axis: str, angle: RealScalarLike) -> Float[Array, "3 3"]:
+def axis_rotation(axis: str, angle: Validated[RealScalarLike]) -> Float[Array, "3 3"]:
     """Rotation by ``angle`` about the coordinate axis ``"x"``, ``"y"`` or ``"z"``:
     ``R = I + sin a K + (1 − cos a) K²`` with the constant generator ``K = [e]ₓ`` (few operations,
     which keeps the traced graphs of long chains of rotations small)."""
@@ -169,7 +169,7 @@ def axis_rotation(axis: str, angle: RealScalarLike) -> Float[Array, "3 3"]:
 
 
 def euler_matrix(
-    angles: Float[ArrayLike, "3"], sequence: str = "zxz", *, extrinsic: bool = False
+    angles: Validated[Float[ArrayLike, "3"]], sequence: str = "zxz", *, extrinsic: bool = False
 ) -> Float[Array, "3 3"]:
     """Rotation matrix (body → world) from three Euler angles.
 
@@ -193,7 +193,7 @@ def euler_matrix(
     return factors[0] @ factors[1] @ factors[2]
 
 
-def quaternion_matrix(quaternion: Float[ArrayLike, "4"]) -> Float[Array, "3 3"]:
+def quaternion_matrix(quaternion: Validated[Float[ArrayLike, "4"]]) -> Float[Array, "3 3"]:
     r"""``R = (w² − v·v) I + 2 v vᵀ + 2 w [v]ₓ`` for ``q = (w, v)``, scalar first.
 
     The rotation for a unit quaternion. Deliberately not normalized: for ``q = s u`` (``u``
@@ -210,7 +210,7 @@ def quaternion_matrix(quaternion: Float[ArrayLike, "4"]) -> Float[Array, "3 3"]:
     return (w * w - v @ v) * eye + 2.0 * jnp.outer(v, v) + 2.0 * w * skew(v)
 
 
-def quaternion_from_matrix(matrix: Float[ArrayLike, "3 3"]) -> Float[Array, "4"]:
+def quaternion_from_matrix(matrix: Validated[Float[ArrayLike, "3 3"]]) -> Float[Array, "4"]:
     """The unit quaternion ``(w, x, y, z)`` of a rotation matrix (Shepperd's method: the
     best-conditioned of the four formulas, chosen without branching, so ``jit`` and ``grad``
     work). ``q`` and ``−q`` are the same rotation; the one returned has its largest component
@@ -233,7 +233,9 @@ def quaternion_from_matrix(matrix: Float[ArrayLike, "3 3"]) -> Float[Array, "4"]
     return candidates[best] * (0.5 / jnp.sqrt(pivot))
 
 
-def axis_angle_matrix(axis: Float[ArrayLike, "3"], angle: RealScalarLike) -> Float[Array, "3 3"]:
+def axis_angle_matrix(
+    axis: Validated[Float[ArrayLike, "3"]], angle: Validated[RealScalarLike]
+) -> Float[Array, "3 3"]:
     r"""Rodrigues' formula: ``R = I + sin a [n]ₓ + (1 − cos a) [n]ₓ²`` about the unit vector
     ``n = axis/|axis|``."""
     axis = _float(axis)

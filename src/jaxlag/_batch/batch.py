@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from jaxtyping import ArrayLike, Float, PyTree
+from jaxtyping import PyTree
 from typing_extensions import Unpack
 
 from .. import _checks as checking
@@ -52,7 +52,7 @@ from .. import _diagnosis
 from .. import _errors as failures
 from .._checks import Checks
 from .._conventions import as_array_leaves, as_float_state, as_jax_array
-from .._custom_types import Args
+from .._custom_types import Args, RealArrayLike, SaveTimes, Validated
 from .._errors import FailureCode
 from .._events import as_events
 from .._misc import is_concrete
@@ -152,14 +152,14 @@ def _pad(x, pad):
 
 def simulate_batch(
     system: System,
-    q0: Float[ArrayLike, "*batch n"],
-    qd0: Float[ArrayLike, "*batch n"],
-    ts: Float[ArrayLike, "*batch times"] | None = None,
+    q0: RealArrayLike,
+    qd0: RealArrayLike,
+    ts: SaveTimes | None = None,
     *,
     args: Args = None,
     args_axes: PyTree[int | None] = None,
-    sharding: str | Mesh | NamedSharding | None = None,
-    method: AbstractBatchMethod | None = None,
+    sharding: Validated[str | Mesh | NamedSharding | None] = None,
+    method: Validated[AbstractBatchMethod | None] = None,
     **options: Unpack[SimulateOptions],
 ) -> Trajectory:
     """Simulate a batch of initial states and/or parameters in one compiled, vmapped call.
@@ -228,8 +228,8 @@ def simulate_batch(
                 f"args{jax.tree_util.keystr(path)} is marked batched by args_axes but is a scalar."
             )
         sizes[f"args{jax.tree_util.keystr(path)}"] = shape[0]
-    if ts is not None and jnp.ndim(ts) == 2:  # per-member save times (method=jl.Ensemble())
-        sizes["ts"] = jnp.shape(ts)[0]
+    if ts is not None and np.ndim(ts) == 2:  # per-member save times (method=jl.Ensemble())
+        sizes["ts"] = np.shape(ts)[0]
     if not sizes:
         raise ValueError(
             "Nothing to batch: give q0 or qd0 of shape (B, n), or mark args leaves with args_axes."

@@ -5,6 +5,7 @@ from typing import Literal, get_args
 
 import equinox as eqx
 
+from .._custom_types import Validated
 from .._options import SimulateOptions
 from .._trajectory import Trajectory
 from .methods import AbstractBatchMethod, BatchProblem
@@ -31,7 +32,7 @@ class Ensemble(AbstractBatchMethod):
     ``"auto"`` (default: ``"xla"``; see the README for why).
     """
 
-    backend: EnsembleBackend = eqx.field(static=True, default="auto")
+    backend: Validated[EnsembleBackend] = eqx.field(static=True, default="auto")
 
     def __check_init__(self):
         if self.backend not in get_args(EnsembleBackend):

@@ -36,9 +36,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, Bool, Float
 
 from .._conventions import UserFunction, wrap_configuration_function
+from .._custom_types import RealScalarLike, Validated
 from .constraints import constraint_rows, holonomic_terms, velocity_terms
 from .kkt import accelerations_and_multipliers, solve_kkt
 from .lagrangian import as_time, mass_solver, mass_solver_and_forces
@@ -89,7 +90,7 @@ class Coulomb(eqx.Module):
     tangent: UserFunction
     mu: Float[Array, ""]
 
-    def __init__(self, contact: int, tangent: Callable, mu: ArrayLike | Sequence[float]):
+    def __init__(self, contact: Validated[int], tangent: Validated[Callable], mu: Validated[RealScalarLike]):
         if isinstance(contact, bool) or not isinstance(contact, (int, np.integer)) or contact < 0:
             raise TypeError(f"Coulomb contact must be a non-negative int (a holonomic row); got {contact!r}.")
         if not callable(tangent):

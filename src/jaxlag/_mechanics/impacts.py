@@ -53,8 +53,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, Bool, Float
 
+from .._custom_types import RealArrayLike, Validated
 from .constraints import holonomic_terms, velocity_terms
 from .kkt import accelerations_and_multipliers, solve_kkt
 from .lagrangian import mass_solver
@@ -105,7 +106,7 @@ class Unilateral(eqx.Module):
     indices: tuple[int, ...] = eqx.field(static=True)
     restitution: Float[Array, " k"]
 
-    def __init__(self, indices: int | Sequence[int], restitution: ArrayLike | Sequence[float] = 0.0):
+    def __init__(self, indices: Validated[int | Sequence[int]], restitution: Validated[RealArrayLike] = 0.0):
         if isinstance(indices, (int, np.integer)) and not isinstance(indices, bool):
             indices = (int(indices),)
         try:

@@ -143,13 +143,13 @@ class Linearization(eqx.Module):
     q: Vector
     qd: Vector
     t: Scalar
-    state_matrix: Float[Array, "2*n 2*n"]
-    input_matrix: Float[Array, "2*n k"] | None
-    basis: Float[Array, "2*n d"]
+    state_matrix: Float[Array, "two_n two_n"]
+    input_matrix: Float[Array, "two_n k"] | None
+    basis: Float[Array, "two_n d"]
     reduced_state_matrix: Float[Array, "d d"]
     reduced_input_matrix: Float[Array, "d k"] | None
     input: Float[Array, " *k"] | None = None
-    feedback_matrix: Float[Array, "k 2*n"] | None = None
+    feedback_matrix: Float[Array, "k two_n"] | None = None
 
     @property
     def eigenvalues(self) -> Complex[Array, " d"]:
@@ -157,7 +157,7 @@ class Linearization(eqx.Module):
         return _ordered_eigenvalues(self.reduced_state_matrix)
 
     @property
-    def closed_loop_matrix(self) -> Float[Array, "2*n 2*n"]:
+    def closed_loop_matrix(self) -> Float[Array, "two_n two_n"]:
         """``A + B F``: the state matrix with the control law's feedback ``δu = F δy``."""
         return self.state_matrix + self._feedback_input() @ self._feedback()
 
@@ -174,7 +174,7 @@ class Linearization(eqx.Module):
         """Eigenvalues of ``A_T + B_T F E`` (complex), ordered as `eigenvalues`."""
         return _ordered_eigenvalues(self.reduced_closed_loop_matrix)
 
-    def _feedback(self) -> Float[Array, "k 2*n"]:
+    def _feedback(self) -> Float[Array, "k two_n"]:
         if self.feedback_matrix is None:
             raise ValueError(
                 "No feedback matrix: the system has no control law (give jl.System(..., "
@@ -182,12 +182,12 @@ class Linearization(eqx.Module):
             )
         return self.feedback_matrix
 
-    def _feedback_input(self) -> Float[Array, "2*n k"]:
+    def _feedback_input(self) -> Float[Array, "two_n k"]:
         if self.input_matrix is None:
             raise ValueError(_NO_INPUT)
         return self.input_matrix
 
-    def modes(self) -> tuple[Complex[Array, " d"], Complex[Array, "2*n d"]]:
+    def modes(self) -> tuple[Complex[Array, " d"], Complex[Array, "two_n d"]]:
         """``(eigenvalues, shapes)``: shapes (2n × d, complex) are eigenvectors in full ``(δq, δq̇)``."""
         values, vectors = jnp.linalg.eig(self.reduced_state_matrix)
         return values, self.basis.astype(vectors.dtype) @ vectors

@@ -6,6 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int, PRNGKeyArray, PyTree
 
+from .._custom_types import Validated
+
 
 class StateData(eqx.Module):
     r"""Samples ``(q, q̇, q̈)`` of a motion: one state per row (leading ``batch`` axis).
@@ -18,10 +20,11 @@ class StateData(eqx.Module):
     the potential, unless a known force sets the units.
     """
 
-    q: Float[Array, "batch n"]
-    qd: Float[Array, "batch n"]
-    qdd: Float[Array, "batch n"]
-    forces: Float[Array, "batch n"] | None = None
+    # The shapes are checked by __check_init__, with a message.
+    q: Validated[Float[Array, "batch n"]]
+    qd: Validated[Float[Array, "batch n"]]
+    qdd: Validated[Float[Array, "batch n"]]
+    forces: Validated[Float[Array, "batch n"] | None] = None
 
     def __check_init__(self):
         shapes = {jnp.shape(self.q), jnp.shape(self.qd), jnp.shape(self.qdd)}
@@ -42,9 +45,10 @@ class TrajectoryData(eqx.Module):
     ``ts`` (batch, times) increase along each row; ``q`` and ``qd`` are (batch, times, n).
     """
 
-    ts: Float[Array, "batch times"]
-    q: Float[Array, "batch times n"]
-    qd: Float[Array, "batch times n"]
+    # The shapes are checked by __check_init__, with a message.
+    ts: Validated[Float[Array, "batch times"]]
+    q: Validated[Float[Array, "batch times n"]]
+    qd: Validated[Float[Array, "batch times n"]]
 
     def __check_init__(self):
         b_t = jnp.shape(self.ts)

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from .._custom_types import Matrix, Scalar
+from .._custom_types import Matrix, Scalar, Validated
 from .._mechanics.mass_solve import RobustSolve
 from .._system import System
 
@@ -211,7 +211,7 @@ class ConstrainedLagrangian(AbstractLagrangian):
         self,
         bodies: int,
         dim: int,
-        constraints: Callable,
+        constraints: Validated[Callable],
         width: int = 64,
         depth: int = 2,
         *,

@@ -4,11 +4,13 @@ import difflib
 import functools
 from collections.abc import Callable, Mapping
 from types import MappingProxyType
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
+from .._custom_types import Validated
 from .._system import System
 
 
+@runtime_checkable
 class Model(Protocol):
     """A model factory decorated by `model`: returns a `System` and carries its
     default parameters."""
@@ -116,7 +118,7 @@ def check_form(name: str, form: str, allowed: tuple[str, ...]) -> str:
     return form
 
 
-def default_args(factory: Model) -> dict:
+def default_args(factory: Validated[Model]) -> dict:
     """A fresh dict of a model's default parameters (edit it and pass it as ``args``)."""
     if not hasattr(factory, "defaults"):
         raise TypeError(f"{factory!r} is not a jaxlag.systems model.")

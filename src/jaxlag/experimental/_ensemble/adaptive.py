@@ -34,7 +34,10 @@ from .step import BatchedField, rk_step, select
 __all__ = ["AdaptiveState", "Trial", "AdaptiveLoop"]
 
 State = tuple[Float[Array, "batch n"], Float[Array, "batch n"]]
-Saves = tuple[Float[Array, "batch saves n"], Float[Array, "batch saves n"]]
+# Inside the checkpointed while loop the saves are equinox's write-only buffers over the arrays.
+Saves = tuple[
+    eqxi.MaybeBuffer[Float[Array, "batch saves n"]], eqxi.MaybeBuffer[Float[Array, "batch saves n"]]
+]
 
 
 class AdaptiveState(eqx.Module):

@@ -1,12 +1,12 @@
 """``jaxlag.experimental.simulate_ensemble``: the ensemble integrator's own entry point."""
 
 from jax.sharding import Mesh, NamedSharding
-from jaxtyping import ArrayLike, Float, PyTree
+from jaxtyping import PyTree
 from typing_extensions import Unpack
 
 from ..._batch.batch import simulate_batch
 from ..._batch.ensemble import Ensemble, EnsembleBackend
-from ..._custom_types import Args
+from ..._custom_types import Args, RealArrayLike, SaveTimes, Validated
 from ..._system import System
 from ..._trajectory import Trajectory
 from .options import EnsembleOptions, check_names
@@ -14,14 +14,14 @@ from .options import EnsembleOptions, check_names
 
 def simulate_ensemble(
     system: System,
-    q0: Float[ArrayLike, "*batch n"],
-    qd0: Float[ArrayLike, "*batch n"],
-    ts: Float[ArrayLike, "*batch times"] | None = None,
+    q0: RealArrayLike,
+    qd0: RealArrayLike,
+    ts: SaveTimes | None = None,
     *,
     args: Args = None,
     args_axes: PyTree[int | None] = None,
-    sharding: str | Mesh | NamedSharding | None = None,
-    backend: EnsembleBackend = "auto",
+    sharding: Validated[str | Mesh | NamedSharding | None] = None,
+    backend: Validated[EnsembleBackend] = "auto",
     **options: Unpack[EnsembleOptions],
 ) -> Trajectory:
     r"""A batch integrated as one explicit Runge–Kutta loop whose state is the whole batch,

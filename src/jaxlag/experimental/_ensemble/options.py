@@ -14,7 +14,7 @@ import numpy as np
 from typing_extensions import TypedDict
 
 from ..._checks import Checks
-from ..._custom_types import RealScalarLike
+from ..._custom_types import RealScalarLike, Validated
 from ..._misc import is_concrete
 from ..._options import SimulateOptions
 from ..._stabilization import Baumgarte, Projection
@@ -41,11 +41,11 @@ class EnsembleOptions(TypedDict, total=False):
     dt0: RealScalarLike | None
     saveat: diffrax.SaveAt | None
     max_steps: int | None
-    adjoint: diffrax.AbstractAdjoint | None
+    adjoint: Validated[diffrax.AbstractAdjoint | None]
     throw: bool
     baumgarte: Baumgarte | None
-    projection: Projection | None
-    checks: Checks
+    projection: Validated[Projection | None]
+    checks: Validated[Checks]
 
 
 _SAVE_Y = diffrax.SubSaveAt(t1=True).fn  # diffrax's default: save the state as it is
