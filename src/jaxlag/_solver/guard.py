@@ -10,13 +10,11 @@ keeps the program out of JAX's persistent cache). ``simulate`` checks a concrete
 host; a traced one takes the direction of integration (``|dt0|·sign(t1 − t0)``).
 """
 
-from typing import Any
-
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, PyTree
 
 from .forwarding import ForwardingAdaptiveController
 
@@ -26,14 +24,14 @@ _ULPS = 64  # a step at most this many ulps of the time scale is at round-off
 class GuardState(eqx.Module):
     """What `FiniteStepGuard` carries from step to step (and returns at the end)."""
 
-    inner: Any
-    t: Any  # time reached: end of the last accepted step
-    dt: Any  # size of the last attempted step
-    q: Any  # last accepted state
-    qd: Any
-    failed: Any  # bool: the guard stopped the solve
-    nonfinite: Any  # bool: ... because a step was non-finite
-    scale: Any  # time scale of the solve: max(|t0|, |t1|, t1 − t0)
+    inner: PyTree  # the wrapped controller's state
+    t: Float[Array, ""]  # time reached: end of the last accepted step
+    dt: Float[Array, ""]  # size of the last attempted step
+    q: Float[Array, " n"]  # last accepted state
+    qd: Float[Array, " n"]
+    failed: Bool[Array, ""]  # the guard stopped the solve
+    nonfinite: Bool[Array, ""]  # ... because a step was non-finite
+    scale: Float[Array, ""]  # time scale of the solve: max(|t0|, |t1|, t1 − t0)
 
 
 def _guarded_init(controller, initial_step, terms, t0, t1, y0, dt0, args, func, error_order):
