@@ -6,7 +6,10 @@ when called eagerly: each must be free of host callbacks. Two fresh processes ru
 script on one cache directory; in the second, every compile request must be a cache hit
 (``jax.monitoring``'s ``compile_requests_use_cache`` and ``cache_hits`` events). The script:
 the README example, its first ``jax.grad``, a ``simulate_batch`` and a constant-step solve with
-``dt0`` and a bouncing ball (the segment loop of events)."""
+``dt0`` and a bouncing ball (the segment loop of events), then the other entry points: a
+linearization (``jl.analysis.linearize``), an equilibrium (``jl.analysis.equilibrium``) and the
+acceleration loss of a learned Lagrangian (``jaxlag.learned``) with its gradient, and a variational
+integration (``jl.simulate_variational``)."""
 
 import json
 import os
@@ -55,6 +58,21 @@ _SCRIPT = textwrap.dedent(
     bounces = jl.simulate(ball, jnp.array([1.0]), jnp.zeros(1), jnp.linspace(0.0, 2.0, 51),
                           events=jl.Events(max_segments=16))
     jax.block_until_ready(bounces.q)
+    # The other entry points: a linearization, an equilibrium, a learned model's loss and grad.
+    upright = jl.analysis.linearize(pendulum, jnp.array([jnp.pi]), jnp.zeros(1), args={"g": 9.81})
+    jax.block_until_ready(upright.state_matrix)
+    rest = jl.analysis.equilibrium(pendulum, jnp.array([3.0]), jnp.zeros(1), args={"g": 9.81})
+    jax.block_until_ready(rest.q)
+    import equinox as eqx
+    from jaxlag import learned as jll
+    model = jll.DeLaN(1, 16, 2, key=jax.random.PRNGKey(0))
+    q = jnp.linspace(-1.0, 1.0, 8)[:, None]
+    data = jll.StateData(q, jnp.linspace(-0.5, 0.5, 8)[:, None], -9.81 * jnp.sin(q))
+    value, grads = eqx.filter_value_and_grad(lambda m: jll.AccelerationLoss()(m, data).value)(model)
+    jax.block_until_ready((value, grads))
+    variational = jl.simulate_variational(pendulum, jnp.array([0.5]), jnp.zeros(1), dt=0.01, num_steps=20,
+                                          args={"g": 9.81})
+    jax.block_until_ready(variational.q)
     print("COUNTS " + json.dumps(counts))
     """
 )

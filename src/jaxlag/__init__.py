@@ -55,7 +55,10 @@ from ._cache import (
 )
 from ._checks import Checks as Checks
 from ._compile import compiler_options as compiler_options
+from ._errors import AbstractOnFailure as AbstractOnFailure
 from ._errors import FailureCode as FailureCode
+from ._errors import NaNOnFailure as NaNOnFailure
+from ._errors import RaiseOnFailure as RaiseOnFailure
 from ._errors import SimulationError as SimulationError
 from ._events import (
     Event as Event,

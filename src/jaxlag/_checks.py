@@ -2,8 +2,10 @@
 
 When the inputs are concrete (``simulate`` called outside ``jit``/``vmap``) the checks run
 eagerly and raise ``ValueError`` with the numbers and the offending constraints. Under a
-transformation they become ``eqx.error_if`` checks compiled into the program, so bad input
-still stops the computation.
+transformation they are compiled into the program as ``Checks.compiled`` says
+(`jaxlag._errors.compiled_check`): ``eqx.branched_error_if`` by default, so bad input still
+stops the computation, or (``jl.NaNOnFailure()``) values: `initial_refusal` for ``simulate``,
+NaN for the other callers.
 
 The compiled checks compute no eigen-decomposition and no SVD: definiteness of ``M`` (its
 condition number within a factor n, ``max_i M_ii · trace(M⁻¹)`` from the factor) and
@@ -26,8 +28,9 @@ from jax.typing import DTypeLike
 from jaxtyping import Array, Float, PyTree
 
 from . import _compile as compilation
-from ._custom_types import Args
+from ._custom_types import Args, Validated
 from ._diagnosis import batch_prefix, failed_members, member
+from ._errors import AbstractOnFailure, FailureCode, RaiseOnFailure, compiled_check
 from ._mechanics import constraints as _constraints
 from ._mechanics.kkt import accelerations_and_multipliers
 from ._mechanics.lagrangian import mass_matrix
@@ -60,6 +63,19 @@ class Checks(eqx.Module):
       check; ``None`` (default) is the dtype's default, 1e-8 in float64 and ``√ε`` (3.5e-4) in
       float32.
 
+    - ``compiled``: what a check does that fails inside a compiled program (inputs traced by
+      ``jax.jit``, ``jax.vmap``, ``jax.export``): the checks above and, with ``throw=True``,
+      the run's own failure record (non-finite equations, ``max_steps``, ...).
+      [`RaiseOnFailure`][jaxlag.RaiseOnFailure] (default) raises a static message through a
+      host callback (``eqx.branched_error_if``);
+      [`NaNOnFailure`][jaxlag.NaNOnFailure] makes the floating-point outputs of that run NaN
+      (their derivatives too) and ``traj.failure.code`` say why
+      ([`FailureCode`][jaxlag.FailureCode]: ``INITIAL_STATE``, ``SAVE_TIMES``, ``PARAMETER``
+      for the input checks), with no host callback in the program: JAX's persistent cache can
+      keep your jitted function and ``jax.export`` can serialize it. Eager calls (concrete
+      inputs, also under ``jax.grad`` alone) are checked on the host and raise with the numbers
+      either way.
+
     ``jl.Checks(initial_state=False)`` skips the initial-state check (e.g. when the state comes
     from [`consistent_initial_state`][jaxlag.consistent_initial_state] in the same program).
     """
@@ -67,8 +83,13 @@ class Checks(eqx.Module):
     initial_state: bool = eqx.field(static=True, default=True)
     times: bool = eqx.field(static=True, default=True)
     constraint_tolerance: float | None = None
+    compiled: Validated[AbstractOnFailure] = eqx.field(static=True, default=RaiseOnFailure())
 
     def __check_init__(self):
+        if not isinstance(self.compiled, AbstractOnFailure):
+            raise TypeError(
+                f"Checks.compiled must be jl.RaiseOnFailure() or jl.NaNOnFailure(); got {self.compiled!r}."
+            )
         tolerance = self.constraint_tolerance
         if tolerance is not None and is_concrete(tolerance) and not float(tolerance) > 0:
             raise ValueError(f"Checks.constraint_tolerance must be positive or None; got {tolerance!r}.")
@@ -689,10 +710,44 @@ assert len(_INITIAL_MESSAGES) == len(_INITIAL_CAUSES) and len(_STATE_MESSAGES) =
 
 
 def _error_if_any(x, fail: dict, causes: tuple[str, ...], messages: tuple[str, ...]):
-    """``x``, or ``eqx.branched_error_if`` with the static message of the first failing cause
-    (for a batch: the latest cause in the list that some member fails)."""
+    """``x``, checked (`jaxlag._errors.compiled_check`: ``eqx.branched_error_if`` by default)
+    with the static message of the first failing cause (for a batch under ``RaiseOnFailure``:
+    the latest cause in the list that some member fails)."""
     flags = jnp.stack([jnp.any(jnp.asarray(fail[cause])) for cause in causes])
-    return eqx.branched_error_if(x, jnp.any(flags), jnp.argmax(flags), messages)
+    return compiled_check(x, jnp.any(flags), jnp.argmax(flags), messages)
+
+
+#: The position of the non-finite-parameter cause among the flags of `initial_refusal` (the
+#: Lagrangian's own checks come first).
+_ARGS_FLAG = 1 + _INITIAL_CAUSES.index("nonfinite_args")
+
+
+def initial_refusal(system, q, qd, t, args, tolerance: float | None) -> tuple[Array, Array, Array]:
+    """The initial-state check of `validate_initial_state` as values, with no host callback:
+    ``(code, index, value)`` for `jaxlag._errors.refused`. ``code`` is
+    `FailureCode.PARAMETER` for a non-finite floating-point leaf of ``args`` (``index``: its
+    position among them), `FailureCode.INITIAL_STATE` for every other failed check (``index``:
+    0 the Lagrangian's own checks, then the causes of the eager diagnosis in order, see
+    `FailureCode`), else ``COMPLETED``; ``value`` is NaN. The first failed check in the order
+    of the eager diagnosis decides."""
+    if tolerance is None:
+        tolerance = default_constraint_tolerance(jnp.result_type(q))
+    d, fail = _diagnostics(system, q, qd, t, args, tolerance)
+    own = lagrangian_checks(system).initial_state_diagnostics(system, q, qd, t, args)
+    own_failed = jnp.asarray(False) if own is None else jnp.any(own[1])
+    flags = jnp.stack([own_failed] + [jnp.any(jnp.asarray(fail[cause])) for cause in _INITIAL_CAUSES])
+    first = jnp.argmax(flags)
+    parameter = first == _ARGS_FLAG
+    finite_leaves = d["args_finite"]
+    leaf = jnp.argmax(~finite_leaves) if finite_leaves.shape[0] else jnp.asarray(0)
+    code = jnp.where(
+        jnp.any(flags),
+        jnp.where(parameter, FailureCode.PARAMETER, FailureCode.INITIAL_STATE),
+        FailureCode.COMPLETED,
+    )
+    index = jnp.where(parameter, leaf, jnp.where(first > _ARGS_FLAG, first - 1, first))
+    value = jnp.asarray(jnp.nan, jnp.result_type(q))
+    return code.astype(jnp.int32), index.astype(jnp.int32), value
 
 
 def check_state_result(system, what: str, out, q, qd, t, args):

@@ -30,6 +30,8 @@ import jax
 import jax.extend.core as jcore
 import numpy as np
 
+from ._errors import current_on_failure, on_failure
+
 #: XLA options for the CPU backend (see the module docstring for the measurements).
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
@@ -103,24 +105,36 @@ class _BackendJit:
 
     Two wrappers are kept (tuned and plain); which one runs is chosen at each call: tuned when
     the call compiles its own program on the CPU, plain when it is traced into an enclosing
-    ``jit`` (JAX accepts options only on top-level programs). Both are created lazily.
+    ``jit`` (JAX accepts options only on top-level programs). Both are created lazily, one pair
+    per choice of the compiled checks in force (`jaxlag._errors.on_failure`), which the
+    function is traced under.
     """
 
     def __init__(self, fn, jitkwargs):
         functools.update_wrapper(self, fn)
         self._fn = fn
         self._jitkwargs = jitkwargs
-        self._wrappers: dict[bool, Any] = {}
+        self._wrappers: dict[tuple[bool, Any], Any] = {}
 
     def _wrapper(self) -> Any:
         options = compiler_options() if _compiled_at_top_level() else {}
         tuned = bool(options)
-        wrapper = self._wrappers.get(tuned)
+        # The compiled checks' choice in force (jaxlag._errors.on_failure) is part of the key:
+        # a program traced under NaNOnFailure never serves a call under RaiseOnFailure.
+        choice = current_on_failure()
+        wrapper = self._wrappers.get((tuned, choice))
         if wrapper is None:
             kwargs = dict(self._jitkwargs)
             if tuned:
                 kwargs["compiler_options"] = {**options, **kwargs.get("compiler_options", {})}
-            wrapper = self._wrappers[tuned] = eqx.filter_jit(self._fn, **kwargs)
+            fn = self._fn
+
+            @functools.wraps(fn)
+            def traced(*args, **kwargs):
+                with on_failure(choice):
+                    return fn(*args, **kwargs)
+
+            wrapper = self._wrappers[(tuned, choice)] = eqx.filter_jit(traced, **kwargs)
         return wrapper
 
     def __call__(self, *args, **kwargs):

@@ -174,6 +174,8 @@ def describe(failure: Failure, system=None, args=None, events=None) -> str:
         return msg + hint
     if code in (FailureCode.RESTITUTION, FailureCode.FRICTION_COEFFICIENT, FailureCode.RESET):
         return _parameter_or_reset_text(code, failure, system, args, events, where, state) + hint
+    if code in (FailureCode.INITIAL_STATE, FailureCode.PARAMETER, FailureCode.SAVE_TIMES):
+        return _refused_text(code, failure, system, args)
     if code == FailureCode.MAX_SEGMENTS:
         used = failure.max_segments
         done = (t - t0) / (t1 - t0) if t1 != t0 else 0.0
@@ -524,6 +526,27 @@ def _parameter_or_reset_text(code, failure: Failure, system, args, events, where
         "crossing to the state the motion continues from and must be finite there: check "
         "its domain (a square root or log of a negative number, a division by zero)."
     )
+
+
+def _refused_text(code, failure: Failure, system, args) -> str:
+    """The eager messages of the input checks that a compiled program returned as values
+    (``jl.NaNOnFailure()``): the initial state is checked again, here on the host, for the
+    message with the numbers."""
+    compiled = " (Checked inside a compiled program with jl.NaNOnFailure(); the simulation did not start.)"
+    if code == FailureCode.SAVE_TIMES:
+        index, value = _optional_int(failure.index), _optional_float(failure.value)
+        entry = "" if index is None else f": ts[{index}] = {value:g} is not followed by a later time"
+        return f"The save times ts must be strictly increasing and finite{entry}." + compiled
+    if system is not None:
+        from ._checks import validate_initial_state  # (the checks use this module's helpers)
+
+        q, qd = jnp.asarray(failure.q), jnp.asarray(failure.qd)
+        try:
+            validate_initial_state(system, q, qd, jnp.asarray(failure.t0, q.dtype), args, None)
+        except ValueError as error:
+            return str(error) + compiled
+    static = FailureCode(code).message.split(" (Raised inside")[0].removeprefix("jaxlag: ")
+    return static[0].upper() + static[1:] + compiled
 
 
 def _result_text(value: int) -> str:

@@ -32,21 +32,36 @@ raises `SimulationError` (``throw=True``, the default):
 * called eagerly (concrete inputs), after the compiled call, synchronously on every backend, with
   the numbers and a diagnosis of the failing state (`jaxlag._diagnosis`: which quantity is
   non-finite, the eigenvalues of ``M``, the steps that would be needed);
-* inside a transformation (``jit``, ``vmap``, ``grad``), from the compiled program by
-  `error_if_failed` (``eqx.branched_error_if``) with the static
-  `FailureCode.message` of the cause; the numbers stay in the returned record. With
+* inside a transformation (``jit``, ``vmap``, ``grad``), as ``jl.Checks(compiled=...)`` says
+  (`AbstractOnFailure`): with `RaiseOnFailure` (the default) from the compiled
+  program (``eqx.branched_error_if``, a host callback) with the static `FailureCode.message` of
+  the cause; with `NaNOnFailure` not at all: the floating-point outputs are NaN and the code
+  says why, and the program holds no host callback (JAX's persistent cache keeps it,
+  ``jax.export`` serializes it). Either way the numbers stay in the returned record. With
   ``throw=False`` nothing is raised and ``traj.raise_if_failed()`` raises the full message, with
   the numbers, later and eagerly.
+
+The input checks of ``simulate`` follow the same choice: compiled as values they end the record
+with `FailureCode.INITIAL_STATE`, `FailureCode.SAVE_TIMES` or `FailureCode.PARAMETER`
+(`refused`). A check site that no argument reaches (inside a user's function, a ``System``
+method called in a force) reads the choice from a trace-time context that ``simulate`` sets
+while it traces (`on_failure`, `compiled_check`).
 """
 
+import abc
+import contextlib
+import contextvars
+import dataclasses
 import enum
+from collections.abc import Iterator, Sequence
+from typing import ClassVar
 
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, Int, PyTree
+from jaxtyping import Array, ArrayLike, Bool, Float, Int, PyTree
 
 from ._solver.guard import GuardState
 
@@ -91,6 +106,28 @@ class FailureCode(enum.IntEnum):
     - ``RESET`` (8): the ``reset`` of a user [`Event`][jaxlag.Event] returned a non-finite state;
       ``index`` is the event's position in ``Events.conditions``, and ``t``, ``q``, ``qd`` the
       state it was given.
+
+    The last three are the input checks of [`simulate`][jaxlag.simulate] compiled as values:
+    they appear only under ``jl.Checks(compiled=jl.NaNOnFailure())`` inside ``jit``/``vmap``
+    (eagerly, and with the default ``jl.RaiseOnFailure()``, the check raises instead). The run
+    stops at ``t0`` (``t``, ``q``, ``qd`` are the initial state); ``traj.raise_if_failed()``,
+    called outside the transformation on the returned record, checks that state again on the
+    host and raises the full message with the numbers.
+
+    - ``INITIAL_STATE`` (9): ``(q0, qd0)`` failed the initial-state check
+      (``jl.Checks(initial_state=True)``); ``index`` says which, in the order of the eager
+      diagnosis: 0 a check of the Lagrangian's own (rigid bodies' masses, inertias and poses,
+      [`lagrangian_from_positions`][jaxlag.coordinates.lagrangian_from_positions]), 1 a
+      non-finite state, 2 a non-finite mass matrix, 3 a singular or indefinite one, 4 a
+      non-finite constraint Jacobian, 5 non-finite constraints, 6 ``diagonal_mass=True`` with
+      off-diagonal entries, 7 redundant constraints, 8 a violated unilateral constraint, 9 off
+      the constraint manifold, 10 a unilateral constraint that would pull.
+    - ``SAVE_TIMES`` (10): traced save times ``ts`` are not strictly increasing
+      (``jl.Checks(times=True)``); ``index`` is the first ``k`` with ``ts[k + 1] <= ts[k]`` (or a
+      NaN), ``value`` is ``ts[k]``.
+    - ``PARAMETER`` (11): a floating-point leaf of ``args`` is not finite (NaN or inf);
+      ``index`` is its position among the floating-point leaves of ``args``
+      (``jax.tree.leaves`` order).
     """
 
     #: The static message raised for this result inside a compiled program (empty for
@@ -147,6 +184,23 @@ class FailureCode(enum.IntEnum):
         8,
         "jaxlag: the simulation stopped: the reset of a jl.Event (reset=...) returned a "
         "non-finite state (NaN or inf); traj.failure.index says which event." + _COMPILED_HINT,
+    )
+    INITIAL_STATE = (
+        9,
+        "jaxlag: the simulation did not start: the initial state failed its check (non-finite, "
+        "a singular mass matrix, redundant constraints, off the constraint manifold, a "
+        "unilateral constraint violated or pulling, or a check of the Lagrangian's own bodies)."
+        + _COMPILED_HINT,
+    )
+    SAVE_TIMES = (
+        10,
+        "jaxlag: the simulation did not start: the save times ts are not strictly increasing "
+        "and finite." + _COMPILED_HINT,
+    )
+    PARAMETER = (
+        11,
+        "jaxlag: the simulation did not start: a floating-point parameter in args is not finite "
+        "(NaN or inf); traj.failure.index says which leaf." + _COMPILED_HINT,
     )
 
 
@@ -256,21 +310,157 @@ def first_failure(earlier: Failure, later: Failure) -> Failure:
     return eqx.tree_at(lambda f: f.num_steps, merged, earlier.num_steps + later.num_steps)
 
 
-# ----------------------------------------------------------------------------- compiled check
-#: The static messages indexed by code, as ``eqx.branched_error_if`` takes them.
-_MESSAGES = tuple(code.message for code in FailureCode)
+def refused(
+    failure: Failure,
+    code: Int[ArrayLike, "*batch"],
+    index: Int[ArrayLike, "*batch"],
+    value: Float[ArrayLike, "*batch"],
+    q0: Float[Array, "*batch n"],
+    qd0: Float[Array, "*batch n"],
+) -> Failure:
+    """``failure`` (a run's record), or where ``code`` is not ``COMPLETED`` the refusal of an
+    input check compiled as a value (`NaNOnFailure`): the run did not start, so the record
+    says ``code`` at ``t0``, from ``(q0, qd0)``, with ``index`` and ``value``."""
+    no = jnp.asarray(code) == FailureCode.COMPLETED
+    dtype = failure.t.dtype
+
+    def pick(mine, theirs):
+        return jnp.where(no, theirs, jnp.asarray(mine, jnp.result_type(theirs)))
+
+    return dataclasses.replace(
+        failure,
+        code=pick(code, failure.code),
+        t=pick(failure.t0, failure.t),
+        dt=pick(jnp.asarray(jnp.nan, dtype), failure.dt),
+        q=jnp.where(no[..., None], failure.q, q0),
+        qd=jnp.where(no[..., None], failure.qd, qd0),
+        index=pick(index, jnp.asarray(-1, jnp.int32) if failure.index is None else failure.index),
+        value=pick(value, jnp.asarray(jnp.nan, dtype) if failure.value is None else failure.value),
+    )
+
+
+# ----------------------------------------------------------------------------- compiled checks: raise or NaN
+class AbstractOnFailure(eqx.Module):
+    """What a check compiled into a program does when it fails: ``jl.Checks(compiled=...)``.
+
+    Concrete inputs are always checked on the host, and a concrete failure record always raises
+    there (with the numbers and a diagnosis): this chooses only for the checks that the values
+    leave inside a compiled program, those of a call traced by the user's ``jax.jit``,
+    ``jax.vmap`` or ``jax.export``. [`RaiseOnFailure`][jaxlag.RaiseOnFailure] (the default)
+    raises with a static message, through a host callback
+    (``eqx.branched_error_if``); [`NaNOnFailure`][jaxlag.NaNOnFailure] returns NaN and a
+    [`FailureCode`][jaxlag.FailureCode] in ``traj.failure.code``, with no host callback.
+
+    Two methods, one per kind of check site: `check` for a value with a flag (the input
+    checks), `outputs` for the outputs of a run with its failure record.
+    """
+
+    #: Whether a failed check is recorded (NaN outputs and a `FailureCode`) instead of raised:
+    #: ``simulate`` then compiles its input checks as values (`refused`), not as checks.
+    records: ClassVar[bool]
+
+    @abc.abstractmethod
+    def check(
+        self, x: PyTree, failed: Bool[ArrayLike, ""], index: Int[ArrayLike, ""], messages: Sequence[str]
+    ) -> PyTree:
+        """``x`` (any pytree), checked: ``failed`` a boolean scalar, ``messages[index]`` the
+        static message of the failure."""
+
+    @abc.abstractmethod
+    def outputs(self, failure: Failure, x: PyTree[Array | np.ndarray]) -> PyTree[Array | np.ndarray]:
+        """``x`` (the floating-point outputs of a run, batch axes first, as in ``failure``),
+        checked against the run's ``failure`` record. The check must survive dead-code
+        elimination in programs that use only derivatives of ``x`` (``jax.jit(jax.grad(...))``
+        of an event time reads no primal output): the tangents of ``x`` are multiplied by a
+        checked exact 1.0, so the derivative program runs the check too."""
+
+
+class RaiseOnFailure(AbstractOnFailure):
+    """A failed compiled check raises (the default of [`Checks`][jaxlag.Checks]): the program
+    holds ``eqx.branched_error_if``, a host callback that raises the static message of the
+    cause (`FailureCode.message` for a failed run) when the program runs. The numbers stay
+    in the returned record; call outside the transformation for the full diagnosis. JAX's
+    persistent cache does not keep such a program, and ``jax.export`` cannot serialize it."""
+
+    records: ClassVar[bool] = False
+
+    def check(
+        self, x: PyTree, failed: Bool[ArrayLike, ""], index: Int[ArrayLike, ""], messages: Sequence[str]
+    ) -> PyTree:
+        """``eqx.branched_error_if(x, failed, index, messages)``."""
+        return eqx.branched_error_if(x, failed, index, tuple(messages))
+
+    def outputs(self, failure: Failure, x: PyTree[Array | np.ndarray]) -> PyTree[Array | np.ndarray]:
+        """``x``, raising `FailureCode.message` of the record's code when the program runs."""
+        return _checked(x, failure.code)
+
+
+class NaNOnFailure(AbstractOnFailure):
+    """A failed compiled check returns NaN: the floating-point outputs of a run that failed (or
+    did not start) are NaN, their derivatives too, and ``traj.failure.code`` says why (a
+    [`FailureCode`][jaxlag.FailureCode]; ``traj.failure`` keeps the numbers). Under ``jax.vmap``
+    each member fails on its own. The program holds no host callback, so JAX's persistent
+    cache can keep it and ``jax.export`` can serialize it. Test the outputs yourself, e.g.
+    ``traj.failure.code == jl.FailureCode.COMPLETED`` or ``jnp.isnan(traj.q)``."""
+
+    records: ClassVar[bool] = True
+
+    def check(
+        self, x: PyTree, failed: Bool[ArrayLike, ""], index: Int[ArrayLike, ""], messages: Sequence[str]
+    ) -> PyTree:
+        """``x`` with its floating-point arrays NaN where ``failed`` (the message is not used)."""
+        del index, messages
+        dynamic, static = eqx.partition(x, eqx.is_inexact_array)
+        return eqx.combine(_nan_if(dynamic, jnp.asarray(failed)), static)
+
+    def outputs(self, failure: Failure, x: PyTree[Array | np.ndarray]) -> PyTree[Array | np.ndarray]:
+        """``x`` NaN where the record's code is not ``COMPLETED`` (per batch member)."""
+        return _nan_if(x, failure.code != FailureCode.COMPLETED)
+
+
+#: The choice in force while jaxlag traces a program: set by ``simulate`` (`on_failure`) for the
+#: check sites it cannot reach by an argument, those inside the user's functions (a ``System``
+#: method called in a force) and inside jaxlag's own programs; read by `compiled_check` only.
+_ON_FAILURE: contextvars.ContextVar[AbstractOnFailure] = contextvars.ContextVar(
+    "jaxlag_on_failure", default=RaiseOnFailure()
+)
+
+
+@contextlib.contextmanager
+def on_failure(choice: AbstractOnFailure) -> Iterator[None]:
+    """Trace the body with ``choice`` for every `compiled_check` in it (a ``with`` block:
+    the previous choice is restored on exit). Programs compiled by `jaxlag._compile.filter_jit`
+    are cached per choice, so programs with different choices never share a trace."""
+    token = _ON_FAILURE.set(choice)
+    try:
+        yield
+    finally:
+        _ON_FAILURE.reset(token)
+
+
+def current_on_failure() -> AbstractOnFailure:
+    """The choice in force (`on_failure`); `RaiseOnFailure` outside every ``simulate``."""
+    return _ON_FAILURE.get()
+
+
+def compiled_check(
+    x: PyTree, failed: Bool[ArrayLike, ""], index: Int[ArrayLike, ""], messages: Sequence[str]
+) -> PyTree:
+    """A check compiled into the program being traced, as the choice in force says
+    (`current_on_failure`): every compiled check of jaxlag calls this (or the choice it
+    was given) instead of ``eqx.error_if``. ``failed``: a boolean scalar; ``messages[index]``:
+    the static message."""
+    return _ON_FAILURE.get().check(x, failed, index, messages)
 
 
 def error_if_failed(failure: Failure, x: PyTree[Array | np.ndarray]) -> PyTree[Array | np.ndarray]:
-    """Compiled counterpart of `jaxlag._diagnosis.raise_if_failed`: ``x`` (a pytree of
-    floating-point arrays: JAX arrays, or NumPy constants that tracing left on the host), or an
-    ``eqx.branched_error_if`` with the static `FailureCode.message` of the failure's code (the
-    record itself stays in the trajectory).
+    """``RaiseOnFailure().outputs(failure, x)``: compiled counterpart of
+    `jaxlag._diagnosis.raise_if_failed`."""
+    return RaiseOnFailure().outputs(failure, x)
 
-    The check must survive dead-code elimination in programs that use only derivatives of ``x``
-    (``jax.jit(jax.grad(...))`` of an event time reads no primal output): the tangents of ``x``
-    are multiplied by a checked exact 1.0, so the derivative program runs the check too."""
-    return _checked(x, failure.code)
+
+#: The static messages indexed by code, as ``eqx.branched_error_if`` takes them.
+_MESSAGES = tuple(code.message for code in FailureCode)
 
 
 def _checked_one(code, dtype):
@@ -289,3 +479,30 @@ def _checked_jvp(primals, tangents):
     # Linear in the tangents (a product with a residual), so it transposes for reverse mode.
     tx = jax.tree_util.tree_map(lambda t: t * _checked_one(code, t.dtype), tx)
     return _checked(x, code), tx
+
+
+def _leading(failed: Array, x: Array) -> Array:
+    """``failed`` (batch axes) broadcastable against ``x`` (batch axes first); a leaf without
+    the batch axes fails where any member does."""
+    if x.ndim >= failed.ndim and x.shape[: failed.ndim] == failed.shape:
+        return failed.reshape(failed.shape + (1,) * (x.ndim - failed.ndim))
+    return jnp.any(failed)
+
+
+@jax.custom_jvp
+def _nan_if(x, failed):
+    return jax.tree_util.tree_map(
+        lambda a: jnp.where(_leading(failed, a), jnp.asarray(jnp.nan, a.dtype), a), x
+    )
+
+
+@_nan_if.defjvp
+def _nan_if_jvp(primals, tangents):
+    x, failed = primals
+    tx, _ = tangents
+    # NaN tangents where failed (a gradient of a failed run is NaN, not a silent 0); linear in
+    # the tangents, so it transposes for reverse mode.
+    tx = jax.tree_util.tree_map(
+        lambda t: t * jnp.where(_leading(failed, t), jnp.asarray(jnp.nan, t.dtype), jnp.ones((), t.dtype)), tx
+    )
+    return _nan_if(x, failed), tx

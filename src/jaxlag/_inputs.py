@@ -11,6 +11,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
 from ._custom_types import RealScalarLike, Validated
+from ._errors import compiled_check
 from ._misc import is_concrete
 
 _TS_MESSAGE = "A time table's `ts` must be finite and strictly increasing (t₀ < t₁ < … < t_{N−1})."
@@ -85,14 +86,14 @@ class AbstractTimeTable(eqx.Module):
                 )
         else:
             ok = jnp.all(jnp.isfinite(times)) & jnp.all(jnp.diff(times) > 0)
-            times = eqx.error_if(times, ~ok, _TS_MESSAGE)
+            times = compiled_check(times, ~ok, 0, (_TS_MESSAGE,))
         if is_concrete(samples):
             v = np.asarray(samples)
             if not np.all(np.isfinite(v)):
                 i = _first_bad_index(v)
                 raise ValueError(f"{name}: values[{i}] = {v[i]} is not finite; table values must be finite.")
         else:
-            samples = eqx.error_if(samples, ~jnp.all(jnp.isfinite(samples)), _VALUES_MESSAGE)
+            samples = compiled_check(samples, ~jnp.all(jnp.isfinite(samples)), 0, (_VALUES_MESSAGE,))
         self.ts = times
         self.values = samples
 

@@ -42,7 +42,7 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 from . import _compile as compilation
 from ._checks import initial_activity, validate_initial_state
 from ._custom_types import RealScalarLike
-from ._errors import Failure, FailureCode, first_failure, from_solution
+from ._errors import AbstractOnFailure, Failure, FailureCode, first_failure, from_solution, on_failure
 from ._events import Event, EventKind, EventLog, Events, root_finder_for
 from ._mechanics.constant_mass import with_constant_mass
 from ._mechanics.constraints import holonomic_residual
@@ -646,6 +646,7 @@ class _RunOptions(Protocol):
     progress_meter: diffrax.AbstractProgressMeter
     check: bool
     tolerance: float | Float[Array, ""]
+    compiled: AbstractOnFailure
 
 
 class _SegmentedSolution(eqx.Module):
@@ -671,6 +672,14 @@ def _save_times(inputs: SimulationInputs) -> Float[Array, " saves"]:
 def _solve_segments(
     inputs: SimulationInputs, events: Events, run: _RunOptions, adjoint
 ) -> _SegmentedSolution:
+    with on_failure(run.compiled):  # for the checks inside the user's functions
+        return _solve_segments_checked(inputs, events, run, adjoint)
+
+
+def _solve_segments_checked(
+    inputs: SimulationInputs, events: Events, run: _RunOptions, adjoint
+) -> _SegmentedSolution:
+    """The body of `_solve_segments`."""
     i = inputs
     system, q0, qd0, t0, args = i.system, i.q0, i.qd0, i.t0, i.args
     system.check(q0, qd0, t0, args)

@@ -22,7 +22,7 @@ from ._adjoint import (
     captures_traced_values,
     trace_outputs,
 )
-from ._checks import Checks, validate_initial_state
+from ._checks import Checks, initial_refusal, validate_initial_state
 from ._conventions import as_array_leaves, as_float_state, as_jax_array
 from ._custom_types import Args, Coordinates, RealScalarLike, SaveTimes, Validated, Velocities
 from ._events import Event, Events, as_events
@@ -176,7 +176,52 @@ def _solve(
     projection,
     check,
     tolerance,
+    compiled,
 ):
+    with failures.on_failure(compiled):  # for the checks inside the user's functions
+        return _solve_checked(
+            system,
+            q0,
+            qd0,
+            t0,
+            t1,
+            dt0,
+            args,
+            solver,
+            stepsize_controller,
+            saveat,
+            max_steps,
+            adjoint,
+            event,
+            progress_meter,
+            baumgarte,
+            projection,
+            check,
+            tolerance,
+        )
+
+
+def _solve_checked(
+    system,
+    q0,
+    qd0,
+    t0,
+    t1,
+    dt0,
+    args,
+    solver,
+    stepsize_controller,
+    saveat,
+    max_steps,
+    adjoint,
+    event,
+    progress_meter,
+    baumgarte,
+    projection,
+    check,
+    tolerance,
+):
+    """The body of `_solve`."""
     system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation
     if check:
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
@@ -243,6 +288,12 @@ def _solve_with_tangents(run, static, primals, tangents, axes, structure):
     ``static``); ``tangents``: one per leaf, k leading where ``axes`` says 0, else not batched.
     Only the inputs that the solver steps see may be perturbed (not times, not the controller):
     `_Run.solves_with_tangents` decides."""
+    with failures.on_failure(run.compiled):  # for the checks inside the user's functions
+        return _solve_with_tangents_checked(run, static, primals, tangents, axes, structure)
+
+
+def _solve_with_tangents_checked(run, static, primals, tangents, axes, structure):
+    """The body of `_solve_with_tangents`."""
     leaves = jax.tree.leaves(primals)
     axes = list(axes)
 
@@ -318,6 +369,8 @@ class _Run(AbstractPushingRun):
     progress_meter: diffrax.AbstractProgressMeter
     check: bool = eqx.field(static=True)
     tolerance: float | Float[Array, ""]
+    # What the compiled checks do (jl.Checks(compiled=...)): part of every program's key.
+    compiled: failures.AbstractOnFailure = eqx.field(static=True)
 
     def may_solve_with_tangents(self, inputs: SimulationInputs) -> bool:
         """Whether `solves_with_tangents` holds for some perturbed inputs (those of the
@@ -384,6 +437,7 @@ class _Run(AbstractPushingRun):
             i.projection,
             self.check,
             self.tolerance,
+            self.compiled,
         )
 
 
@@ -432,6 +486,17 @@ def simulate(
       ``jl.Checks(times=False)`` when you have checked them yourself, as ``jl.fit`` does once
       on the host, so that the program has no host callback and JAX's persistent cache can
       store it. Concrete ``ts`` are always checked, on the host.
+      ``compiled``: what these checks, and with ``throw=True`` the run's own failures, do when
+      they fail inside a compiled program (under your ``jax.jit``, ``jax.vmap``,
+      ``jax.export``): [`RaiseOnFailure`][jaxlag.RaiseOnFailure] (default) raises a static
+      message through a host callback; [`NaNOnFailure`][jaxlag.NaNOnFailure] returns the
+      trajectory with NaN outputs (and NaN derivatives) and ``traj.failure.code`` a
+      [`FailureCode`][jaxlag.FailureCode] (``INITIAL_STATE``, ``SAVE_TIMES`` or ``PARAMETER``
+      for a refused input), with no host callback in the program, so that your jitted function
+      can be cached on disk and exported. E.g.
+      ``jax.jit(lambda g: jl.simulate(system, q0, qd0, ts, args={"g": g},
+      checks=jl.Checks(compiled=jl.NaNOnFailure())))``. Eager calls raise with the numbers
+      either way.
 
     Every diffrax option passes through unchanged: ``solver`` (default ``diffrax.Tsit5()``),
     ``stepsize_controller`` (default ``diffrax.PIDController(rtol=1e-10, atol=1e-10)``, in
@@ -453,8 +518,10 @@ def simulate(
     - ``baumgarte``: optional [`Baumgarte`][jaxlag.Baumgarte] feedback in the acceleration constraint.
     - ``throw``: on a run-time failure (non-finite equations of motion, a collapsing step size,
       ``max_steps``, ``max_segments``) raise [`SimulationError`][jaxlag.SimulationError] with the numbers
-      and a diagnosis (`jaxlag._errors`); with ``False`` return the trajectory, whose
-      ``failure`` record says what happened (``traj.raise_if_failed()`` raises later).
+      and a diagnosis (`jaxlag._errors`); inside a compiled program as ``checks.compiled``
+      says (raise, or NaN outputs and the code). With ``False`` return the trajectory as the
+      run left it, whose ``failure`` record says what happened (``traj.raise_if_failed()``
+      raises later).
 
     Events and unilateral constraints (see `jaxlag._events`):
 
@@ -475,6 +542,66 @@ def simulate(
     """
     if not isinstance(checks, Checks):
         raise TypeError(f"checks must be a jl.Checks; got {type(checks).__name__}.")
+    # Every check compiled while simulate traces (also inside the user's functions) follows
+    # checks.compiled; jaxlag's programs are cached per choice (jaxlag._compile.filter_jit).
+    with failures.on_failure(checks.compiled):
+        return _simulate(
+            system,
+            q0,
+            qd0,
+            ts,
+            t0=t0,
+            t1=t1,
+            args=args,
+            solver=solver,
+            stepsize_controller=stepsize_controller,
+            dt0=dt0,
+            saveat=saveat,
+            max_steps=max_steps,
+            adjoint=adjoint,
+            event=event,
+            throw=throw,
+            progress_meter=progress_meter,
+            baumgarte=baumgarte,
+            projection=projection,
+            checks=checks,
+            events=events,
+        )
+
+
+def _simulate(
+    system: System,
+    q0,
+    qd0,
+    ts,
+    *,
+    t0,
+    t1,
+    args,
+    solver,
+    stepsize_controller,
+    dt0,
+    saveat,
+    max_steps,
+    adjoint,
+    event,
+    throw: bool,
+    progress_meter,
+    baumgarte,
+    projection,
+    checks: Checks,
+    events,
+) -> Trajectory:
+    """The body of `simulate` (its arguments checked, under its choice of compiled checks).
+
+    With ``checks.compiled`` a `NaNOnFailure` (``records``) the checks of traced inputs are
+    values: a prologue computes the refusal of the save times and of the initial state
+    (`initial_refusal`), the run compiles no check, and the epilogue puts the refusal into the
+    failure record (`jaxlag._errors.refused`) and, with ``throw``, NaN into the outputs of a
+    run that failed or was refused."""
+    compiled = checks.compiled
+    # (code, index, value) of the input checks compiled as values, (q0, qd0) they refer to.
+    refusals: list[tuple[jax.Array, jax.Array, jax.Array]] = []
     q0, qd0 = as_float_state(q0, qd0)
     args = as_array_leaves(args, q0.dtype)
     user_saveat = saveat is not None
@@ -489,7 +616,17 @@ def simulate(
             if text is not None:
                 raise ValueError(text)
         elif checks.times:  # traced save times: the same check, compiled in
-            ts = eqx.error_if(ts, ~jnp.all(jnp.diff(ts) > 0), _SAVE_TIMES)
+            increasing = jnp.diff(ts) > 0
+            if compiled.records:
+                k = jnp.argmax(~increasing) if ts.shape[0] > 1 else jnp.asarray(0)
+                bad = ~jnp.all(increasing)
+                code = jnp.where(bad, failures.FailureCode.SAVE_TIMES, failures.FailureCode.COMPLETED)
+                refusals.append((code.astype(jnp.int32), k.astype(jnp.int32), ts[k]))
+                # The refused run integrates over increasing times instead (its outputs are NaN).
+                ts = jnp.where(bad, _increasing_times(ts.shape[0], t0, t1, ts.dtype), ts)
+                ends = ts
+            else:
+                ts = compiled.check(ts, ~jnp.all(increasing), 0, (_SAVE_TIMES,))
         if saveat is None and t0 is None and t1 is None:
             # Checked above (or compiled in): saved without diffrax's checks (host callbacks).
             saveat = diffrax.SaveAt(subs=diffrax.SubSaveAt(ts=cast(jax.Array, ts), fn=save_checked_state))
@@ -540,8 +677,14 @@ def simulate(
         # (Returns the state threaded through compiled checks if the flags turn out traced.)
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, constraint_tolerance)
         check_in_jit = False
+    host_check = False  # ForwardSensitivities: the initial state checked inside, on the host
+    if check_in_jit and compiled.records:
+        # As values, in front of the run (which compiles no check): no host callback.
+        refusals.append(initial_refusal(system, q0, qd0, t0, args, constraint_tolerance))
+        check_in_jit, host_check = False, True
+    state0 = (q0, qd0)
 
-    run = _Run(segmented, max_steps, progress_meter, check_in_jit, constraint_tolerance)
+    run = _Run(segmented, max_steps, progress_meter, check_in_jit, constraint_tolerance, compiled)
     inputs = SimulationInputs(
         system=system,
         q0=q0,
@@ -578,15 +721,23 @@ def simulate(
             trajectory = run(inputs, adjoint.fallback)
         else:
             # Failures are raised inside the custom_vjp, where the record is concrete (host-side
-            # check, no compiled check) unless the caller itself is being traced.
-            finish = (lambda tr: _raise_if_failed(tr, tr.system, tr.args, events)) if throw else None
+            # check, no compiled check) unless the caller itself is being traced. Recorded
+            # failures (NaNOnFailure) are put into the outputs outside it, with the refusals.
+            inside = None if compiled.records else compiled
+            finish = (lambda tr: _raise_if_failed(tr, tr.system, tr.args, events, inside)) if throw else None
             prepare = None
-            if run.check:
-                prepare = ft.partial(_checked_initial_state, tolerance=constraint_tolerance)
-            check_residuals = _check_residuals if throw else None
-            return call_with_forward_sensitivities(
+            if run.check or host_check:
+                prepare = ft.partial(
+                    _checked_initial_state, tolerance=constraint_tolerance, host_only=host_check
+                )
+            check_residuals = _check_residuals if throw and not compiled.records else None
+            trajectory = call_with_forward_sensitivities(
                 unchecked, inputs, adjoint, shapes, finish, prepare, check_residuals
             )
+            trajectory = _with_refusals(trajectory, refusals, *state0)
+            if throw and compiled.records and not is_concrete(trajectory.failure):
+                return failed_outputs(trajectory, compiled)
+            return trajectory
     elif isinstance(adjoint, ForwardSensitivities):
         # No traced input; a user function may still close over a value of the caller's grad,
         # which the fallback (reverse-mode) adjoint differentiates. Outside every transformation
@@ -596,7 +747,8 @@ def simulate(
         trajectory = run(inputs, adjoint.inner if plain else adjoint.fallback)
     else:
         trajectory = run(inputs, adjoint)
-    return _raise_if_failed(trajectory, system, args, events) if throw else trajectory
+    trajectory = _with_refusals(trajectory, refusals, *state0)
+    return _raise_if_failed(trajectory, system, args, events, compiled) if throw else trajectory
 
 
 def as_projection(projection, system: System) -> Projection | None:
@@ -609,11 +761,34 @@ def as_projection(projection, system: System) -> Projection | None:
     return projection if system.is_constrained else None
 
 
-def _checked_initial_state(inputs: SimulationInputs, tolerance) -> SimulationInputs:
+def _checked_initial_state(inputs: SimulationInputs, tolerance, host_only: bool = False) -> SimulationInputs:
     """``inputs`` with ``(q0, qd0)`` checked (`validate_initial_state`:
-    raises here for concrete values, compiles the check in otherwise)."""
-    q0, qd0 = validate_initial_state(inputs.system, inputs.q0, inputs.qd0, inputs.t0, inputs.args, tolerance)
+    raises here for concrete values, compiles the check in otherwise; ``host_only``: traced
+    values are left to the refusal that ``simulate`` computed as values)."""
+    i = inputs
+    if host_only and not is_concrete((i.q0, i.qd0, i.t0, i.args)):
+        return inputs
+    q0, qd0 = validate_initial_state(i.system, i.q0, i.qd0, i.t0, i.args, tolerance)
     return dataclasses.replace(inputs, q0=q0, qd0=qd0)
+
+
+def _increasing_times(n: int, t0, t1, dtype) -> jax.Array:
+    """``n`` increasing save times, from ``t0`` to ``t1`` where they are given (else
+    ``0, 1, ..., n − 1``): what a run refused for its save times integrates over."""
+    start = jnp.asarray(0.0 if t0 is None else t0, dtype)
+    stop = start + (n - 1) if t1 is None else jnp.asarray(t1, dtype)
+    return jnp.linspace(start, stop, n, dtype=dtype)
+
+
+def _with_refusals(trajectory: Trajectory, refusals, q0, qd0) -> Trajectory:
+    """``trajectory`` whose failure record starts with the first of the input checks compiled as
+    values that failed (`jaxlag._errors.refused`), in the order they were checked."""
+    if not refusals:
+        return trajectory
+    failure = cast(failures.Failure, trajectory.failure)
+    for code, index, value in reversed(refusals):
+        failure = failures.refused(failure, code, index, value, q0, qd0)
+    return dataclasses.replace(trajectory, failure=failure)
 
 
 def _check_residuals(trajectory: Trajectory, residuals):
@@ -627,14 +802,40 @@ def _check_residuals(trajectory: Trajectory, residuals):
 
 
 def _raise_if_failed(
-    trajectory: Trajectory, system: System, args, events: Events | None = None
+    trajectory: Trajectory,
+    system: System,
+    args,
+    events: Events | None = None,
+    compiled: failures.AbstractOnFailure | None = failures.RaiseOnFailure(),
 ) -> Trajectory:
-    """Eagerly (concrete result: synchronous, full diagnosis) or compiled into the program."""
+    """Eagerly (concrete result: synchronous, full diagnosis) or compiled into the program as
+    ``compiled`` says (``None``: not at all)."""
     failure = cast(failures.Failure, trajectory.failure)  # simulate always records how it ended
     if is_concrete(failure):
         _diagnosis.raise_if_failed(failure, system, args, events=events)
         return trajectory
-    # On every floating-point output, not only q: a program that reads only an event time (e.g.
-    # jax.grad of a bounce time under jit) must not drop the check as dead code.
-    outputs, rest = eqx.partition(trajectory, eqx.is_inexact_array)
-    return eqx.combine(failures.error_if_failed(failure, outputs), rest)
+    if compiled is None:
+        return trajectory
+    return failed_outputs(trajectory, compiled)
+
+
+def failed_outputs(trajectory: Trajectory, compiled: failures.AbstractOnFailure) -> Trajectory:
+    """The (traced) failure record checked on every floating-point output, not only ``q``: a
+    program that reads only an event time (e.g. ``jax.grad`` of a bounce time under ``jit``)
+    must not drop the check as dead code. A recorded failure (`NaNOnFailure`) leaves the
+    trajectory's inputs (``args``, the system's arrays) and the record itself as they are."""
+    failure = cast(failures.Failure, trajectory.failure)
+    if not compiled.records:  # the record's own arrays raise too
+        outputs, rest = eqx.partition(trajectory, eqx.is_inexact_array)
+        return eqx.combine(compiled.outputs(failure, outputs), rest)
+
+    # The run's outputs, not its inputs (args, the system's arrays) nor the record's numbers.
+    def is_output(path, leaf) -> bool:
+        return path[0].name not in _NOT_OUTPUTS and eqx.is_inexact_array(leaf)
+
+    outputs, rest = eqx.partition(trajectory, jax.tree_util.tree_map_with_path(is_output, trajectory))
+    return eqx.combine(compiled.outputs(failure, outputs), rest)
+
+
+#: The fields of a Trajectory that a recorded failure leaves as they are.
+_NOT_OUTPUTS = frozenset({"args", "system_arrays", "failure"})

@@ -31,6 +31,7 @@ from jaxtyping import Array, Bool
 from . import _compile as compilation
 from ._conventions import as_array_leaves, as_jax_array
 from ._custom_types import Args, Coordinates, RealScalarLike, Vector, Velocities
+from ._errors import compiled_check
 from ._mechanics import constraints as _constraints
 from ._mechanics.kkt import deactivate
 from ._mechanics.lagrangian import as_time, mass_matrix, mass_solver
@@ -351,12 +352,12 @@ def _consistent_state(system, q0, qd0, t0, args, newton_steps, tolerance, free_q
     if system.holonomic is not None:
         failed = ~(position <= tolerance)
         cause = jnp.where(_free_rank_deficient(jac, free_q), 0, 1) if free_q is not None else 1
-        q = eqx.branched_error_if(
+        q = compiled_check(
             q, failed, cause, (_TOO_MANY_HELD_Q, position_failure_message(tolerance, q0.dtype))
         )
     if free_qd is not None:
         cause = jnp.where(_free_rank_deficient(rows, free_qd), 0, 1)
-        qd = eqx.branched_error_if(
+        qd = compiled_check(
             qd,
             ~(velocity <= tolerance),
             cause,

@@ -73,6 +73,7 @@ from . import _compile as compilation
 from ._checks import Checks, validate_initial_state
 from ._conventions import as_array_leaves
 from ._custom_types import Args, Coordinates, RealScalarLike, Validated, Velocities
+from ._errors import SimulationError, compiled_check, on_failure
 from ._mechanics import constraints as _constraints
 from ._mechanics.dependence import may_depend
 from ._mechanics.kkt import accelerations_and_multipliers, solve_kkt
@@ -538,7 +539,7 @@ def _integrate(scheme, system, q0, qd0, t0, dt, args, num_steps, save_every, thr
     qd = jnp.concatenate([qd0[None], qds])
     t = t0 + h * save_every * jnp.arange(num_saves + 1, dtype=q0.dtype)
     if throw:
-        q = eqx.error_if(q, last.failed_step >= 0, _FAILURE)
+        q = compiled_check(q, last.failed_step >= 0, 0, (_FAILURE,))
     stats = dict(
         num_steps=jnp.asarray(num_steps),
         newton_iterations=last.iterations,
@@ -609,7 +610,10 @@ def simulate_variational(
       ``traj.result`` and ``traj.stats["failed_step"]``.
     - ``checks``: a [`Checks`][jaxlag.Checks], as in [`simulate`][jaxlag.simulate]: ``initial_state``
       and ``constraint_tolerance`` (default 1e-8 in float64, ``√ε`` in float32) apply; there
-      are no save times to check (``times`` is ignored).
+      are no save times to check (``times`` is ignored). With
+      ``compiled=jl.NaNOnFailure()`` a check that fails inside ``jit`` makes ``traj.q`` NaN
+      instead of raising (``traj.stats["failed_step"]`` says which step failed), with no host
+      callback in the program.
 
     Returns a [`Trajectory`][jaxlag.Trajectory] whose ``qd`` are the velocities of the discrete
     Legendre transform projected onto ``J q̇ + ∂f/∂t = 0``; its derived quantities (energy,
@@ -683,11 +687,14 @@ def simulate_variational(
                     f"{float(deviation):.3g}). Use method=jl.VariationalMidpoint()."
                 )
         else:
-            q0 = eqx.error_if(
+            q0 = compiled_check(
                 q0,
                 ~(deviation <= 1e-8),
-                "jaxlag.simulate_variational: method=jl.Rattle() needs a Lagrangian quadratic "
-                "in q̇; use method=jl.VariationalMidpoint().",
+                0,
+                (
+                    "jaxlag.simulate_variational: method=jl.Rattle() needs a Lagrangian quadratic "
+                    "in q̇; use method=jl.VariationalMidpoint().",
+                ),
             )
             q0 = cast(jax.Array, q0)  # error_if returns its input (typed as any pytree)
         structure = LagrangianStructure(True, False)
@@ -707,20 +714,30 @@ def simulate_variational(
         raise TypeError(f"checks must be a jl.Checks; got {type(checks).__name__}.")
     constraint_tolerance = checks.tolerance(q0.dtype)
     check_in_jit = checks.initial_state
+    concrete = is_concrete((q0, qd0, t0, dt, args))
     if checks.initial_state and is_concrete((q0, qd0, t0, args)):
         q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, constraint_tolerance)
         check_in_jit = False
-    return _integrate(
-        scheme,
-        system,
-        q0,
-        qd0,
-        t0,
-        dt,
-        args,
-        num_steps,
-        save_every,
-        bool(throw),
-        check_in_jit,
-        float(constraint_tolerance),
-    )
+    with on_failure(checks.compiled):
+        traj = _integrate(
+            scheme,
+            system,
+            q0,
+            qd0,
+            t0,
+            dt,
+            args,
+            num_steps,
+            save_every,
+            bool(throw) and not concrete,  # eagerly: the host reads the record (no callback)
+            check_in_jit,
+            float(constraint_tolerance),
+        )
+    if throw and concrete:
+        stats = cast(dict, traj.stats)
+        failed_step = int(stats["failed_step"])
+        if failed_step >= 0:
+            raise SimulationError(
+                f"{_FAILURE} (Step {failed_step} failed, at t = {float(t0) + failed_step * float(dt):.10g}.)"
+            )
+    return traj

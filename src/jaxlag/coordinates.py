@@ -48,6 +48,7 @@ from ._custom_types import (
     Vector,
     Velocities,
 )
+from ._errors import compiled_check
 from ._misc import is_concrete
 from ._tolerances import MASS_RCOND, rcond
 from .rotations import euler_singularity, record_euler_calls, unskew
@@ -613,7 +614,7 @@ def _validated(value, owner: str, name: str, problem):
             raise ValueError(f"{owner} {name}: {text}")
         return value
     bad, text = cast(tuple, problem(value, traced=True))
-    return eqx.error_if(jnp.asarray(value), bad, f"jaxlag: {owner} {name} {text}.")
+    return compiled_check(jnp.asarray(value), bad, 0, (f"jaxlag: {owner} {name} {text}.",))
 
 
 def _offset(point, size: int, owner: str, dtype):
@@ -904,7 +905,7 @@ def _check_bodies(lagrangian: _PositionLagrangian, system, q, qd, t, args):
         return q
     stacked = jnp.stack([jnp.asarray(f) for f in flags])
     messages = tuple(f"jaxlag: {m}{_COMPILED}" for m in messages)
-    return eqx.branched_error_if(q, jnp.any(stacked), jnp.argmax(stacked), messages)
+    return compiled_check(q, jnp.any(stacked), jnp.argmax(stacked), messages)
 
 
 def _body_diagnostics(lagrangian: _PositionLagrangian, system, q, t, args):

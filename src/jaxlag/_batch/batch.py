@@ -35,6 +35,7 @@ is then the global device list, ``"auto"`` builds a mesh over all of them, and t
 device of every host.
 """
 
+import dataclasses
 import math
 from typing import cast
 
@@ -57,7 +58,7 @@ from .._errors import FailureCode
 from .._events import as_events
 from .._misc import is_concrete
 from .._options import SimulateOptions, check_option_names, default_option
-from .._simulate import as_projection
+from .._simulate import as_projection, failed_outputs
 from .._solver.validation import check_solver_controller
 from .._system import System
 from .._trajectory import Trajectory
@@ -251,8 +252,12 @@ def simulate_batch(
         problem = _placed(problem, batch_sharding(sharding))
     if method is None:
         method = _default_method(problem, options)
-    out = method.simulate(problem, options)
-    return _raise_for_failed_members(out, default_option(options, "throw"), system, batched_args, shared_args)
+    compiled = default_option(options, "checks").compiled
+    with failures.on_failure(compiled):  # for the checks that no option reaches (see simulate)
+        out = method.simulate(problem, options)
+    return _raise_for_failed_members(
+        out, default_option(options, "throw"), system, batched_args, shared_args, compiled
+    )
 
 
 def _checked_options(system: System, options: SimulateOptions) -> SimulateOptions:
@@ -316,19 +321,26 @@ def _default_method(problem: BatchProblem, options: SimulateOptions) -> Abstract
     return Ensemble() if ensemble_by_default(problem, options) else Vmap()
 
 
-def _raise_for_failed_members(out: Trajectory, throw: bool, system, batched_args, shared_args) -> Trajectory:
+def _raise_for_failed_members(
+    out: Trajectory,
+    throw: bool,
+    system,
+    batched_args,
+    shared_args,
+    compiled: failures.AbstractOnFailure = failures.RaiseOnFailure(),
+) -> Trajectory:
     """``throw=True``: raise [`SimulationError`][jaxlag.SimulationError] naming the first failed member
-    (eagerly, with its numbers and diagnosis), or compile the check in under a transformation."""
+    (eagerly, with its numbers and diagnosis), or compile the check in under a transformation
+    as ``compiled`` says (`NaNOnFailure`: the failed members' outputs NaN)."""
     if not throw or out.failure is None:
         return out
     if not is_concrete(out.failure):
         # The record carries no derivative: under jax.grad its integer code would otherwise
         # reach equinox's unvmap_max with a tangent, which has no differentiation rule.
         failure = jax.lax.stop_gradient(out.failure)
-        # Every floating-point output, and (failures.error_if_failed) their derivatives: a
-        # program that reads only an event time or only a gradient keeps the check.
-        outputs, rest = eqx.partition(out, eqx.is_inexact_array)
-        return eqx.combine(failures.error_if_failed(failure, outputs), rest)
+        # Every floating-point output, and their derivatives: a program that reads only an
+        # event time or only a gradient keeps the check.
+        return failed_outputs(dataclasses.replace(out, failure=failure), compiled)
     if out.failure.code.is_fully_addressable:
         if is_concrete((batched_args, shared_args)):
             member_args = _member_args(batched_args, shared_args)
@@ -341,6 +353,10 @@ def _raise_for_failed_members(out: Trajectory, throw: bool, system, batched_args
     return out
 
 
+#: "1 nonfinite, 2 max_steps, ...": the codes of jl.FailureCode, for the messages.
+_CODE_NAMES = ", ".join(f"{code.value} {code.name.lower()}" for code in FailureCode if code)
+
+
 def _raise_for_local_members(failure) -> None:
     for shard in failure.code.addressable_shards:
         codes = np.asarray(shard.data)
@@ -349,9 +365,8 @@ def _raise_for_local_members(failure) -> None:
             bad = [int(i) + (rows.start or 0) for i in np.nonzero(codes != FailureCode.COMPLETED)[0]]
             raise failures.SimulationError(
                 f"Batch members {bad} (on this process) did not complete: failure codes "
-                f"{codes[codes != FailureCode.COMPLETED].tolist()} (1 non-finite, 2 max_steps, 3 solver, "
-                "4 max_segments, 5 step size collapsed). Pass throw=False and read "
-                "traj.failure.code.addressable_shards (or gather it) for the details."
+                f"{codes[codes != FailureCode.COMPLETED].tolist()} ({_CODE_NAMES}). Pass throw=False "
+                "and read traj.failure.code.addressable_shards (or gather it) for the details."
             )
 
 

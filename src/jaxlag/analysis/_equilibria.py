@@ -33,6 +33,7 @@ from jaxtyping import Array, Float, Int
 from .. import _compile as compilation
 from .._conventions import as_array_leaves, as_float_state
 from .._custom_types import Args, Coordinates, RealScalarLike, Scalar, Vector, Velocities
+from .._errors import compiled_check
 from .._mechanics import constraints as _constraints
 from .._mechanics import kkt as _kkt
 from .._mechanics import lagrangian as _mechanics
@@ -310,17 +311,16 @@ def equilibrium(
                 "by itself); fix only coordinates the Lagrangian does not depend on."
             )
         return eq
-    q_out = eqx.error_if(
+    q_out = compiled_check(
         eq.q,
-        failed,
-        "jaxlag.analysis.equilibrium: the root find did not converge (or its solution is "
-        "off the constraint manifold); try a closer guess, or fix the coordinates "
-        "of a non-isolated equilibrium (`fixed=`).",
-    )
-    q_out = eqx.error_if(
-        q_out,
-        not_steady,
-        "jaxlag.analysis.equilibrium: the solution is not steady (q̈ ≠ 0): a coordinate in `fixed` "
-        "is not cyclic.",
+        failed | not_steady,
+        jnp.where(failed, 0, 1),
+        (
+            "jaxlag.analysis.equilibrium: the root find did not converge (or its solution is "
+            "off the constraint manifold); try a closer guess, or fix the coordinates "
+            "of a non-isolated equilibrium (`fixed=`).",
+            "jaxlag.analysis.equilibrium: the solution is not steady (q̈ ≠ 0): a coordinate in "
+            "`fixed` is not cyclic.",
+        ),
     )
     return eqx.tree_at(lambda e: e.q, eq, q_out)

@@ -62,6 +62,7 @@ from jaxtyping import Array, ArrayLike, Bool, Complex, Float
 from .. import _compile as compilation
 from .._conventions import UserFunction, as_array_leaves, as_float_state
 from .._custom_types import Args, Coordinates, RealScalarLike, Scalar, Vector, Velocities
+from .._errors import compiled_check
 from .._mechanics import constraints as _constraints
 from .._mechanics import kkt as _kkt
 from .._mechanics import lagrangian as _mechanics
@@ -310,10 +311,11 @@ def linearize(
         if bool(rank_deficient):
             raise _raise_rank("state")
         return lin
-    checked = eqx.error_if(
+    checked = compiled_check(
         lin.state_matrix,
         rank_deficient,
-        "jaxlag.analysis.linearize: redundant constraints (rank-deficient Jacobian).",
+        0,
+        ("jaxlag.analysis.linearize: redundant constraints (rank-deficient Jacobian).",),
     )
     return eqx.tree_at(lambda x: x.state_matrix, lin, checked)
 
@@ -438,11 +440,14 @@ def normal_modes(
                 "jaxlag.analysis.linearize for a steady motion."
             )
         return modes
-    w2 = eqx.error_if(
-        modes.frequencies_squared, rank_deficient, "jaxlag.analysis.normal_modes: redundant constraints."
-    )
-    w2 = eqx.error_if(
-        w2, not_equilibrium, "jaxlag.analysis.normal_modes: q is not an equilibrium at rest (q̈ ≠ 0)."
+    w2 = compiled_check(
+        modes.frequencies_squared,
+        rank_deficient | not_equilibrium,
+        jnp.where(rank_deficient, 0, 1),
+        (
+            "jaxlag.analysis.normal_modes: redundant constraints.",
+            "jaxlag.analysis.normal_modes: q is not an equilibrium at rest (q̈ ≠ 0).",
+        ),
     )
     return eqx.tree_at(lambda x: x.frequencies_squared, modes, w2)
 
