@@ -4,8 +4,9 @@ Models are equinox Modules callable as ``L(q, q̇)``; ``model.system()`` is the
 [`System`][jaxlag.System] that simulates them (``M q̈ = F + Jᵀλ``, ``M = ∂²L/∂q̇²``, ``J = ∂f/∂q``
 for the known constraints of `ConstrainedLagrangian`). Losses return a
 `LossValue` that counts the members whose prediction is not finite instead of averaging
-NaN in; `train_step` is one pure optax step and `train` a loop with validation and
-early stopping around it.
+NaN in; `train_step` is one pure optax step and `train` a loop with validation, early
+stopping and guards around it (data refused by name, non-finite steps skipped and reported);
+`train_recipe` trains with the benchmark's `Recipe`.
 """
 
 from ._data import (
@@ -56,6 +57,9 @@ from ._models import (
 from ._models import (
     MLPLagrangian as MLPLagrangian,
 )
+from ._recipe import Recipe as Recipe
+from ._recipe import RecipeResult as RecipeResult
+from ._recipe import train_recipe as train_recipe
 from ._training import TrainResult as TrainResult
 from ._training import train as train
 from ._training import train_step as train_step
@@ -70,6 +74,8 @@ __all__ = [
     "LossValue",
     "MLPLagrangian",
     "MultipleShootingLoss",
+    "Recipe",
+    "RecipeResult",
     "RolloutLoss",
     "StateData",
     "TrainResult",
@@ -79,5 +85,6 @@ __all__ = [
     "split",
     "state_data",
     "train",
+    "train_recipe",
     "train_step",
 ]

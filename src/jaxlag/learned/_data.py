@@ -1,10 +1,19 @@
-"""Training data for learned Lagrangians: states with accelerations, and sampled trajectories."""
+"""Training data for learned Lagrangians: states with accelerations, and sampled trajectories.
+
+Both kinds refuse, when built from concrete arrays, values that are not finite (naming the field
+and the rows) and `TrajectoryData` times that do not increase: a NaN target would otherwise be
+counted as a failed member at every step and learn nothing, silently. Under ``jit`` (tracers) the
+checks are left to the losses, which mask such rows as failed members.
+"""
+
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int, PRNGKeyArray, PyTree
+from jax.core import Tracer
+from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray, PyTree
 
 from .._custom_types import Validated
 
@@ -37,6 +46,10 @@ class StateData(eqx.Module):
                 + ("" if self.forces is None else f" and {jnp.shape(self.forces)}")
                 + "."
             )
+        fields = {"q": self.q, "qd": self.qd, "qdd": self.qdd}
+        if self.forces is not None:
+            fields["forces"] = self.forces
+        check_finite("StateData", fields)
 
 
 class TrajectoryData(eqx.Module):
@@ -59,6 +72,84 @@ class TrajectoryData(eqx.Module):
             )
         if b_t[1] < 2:
             raise ValueError(f"TrajectoryData: each trajectory needs at least 2 times; got {b_t[1]}.")
+        check_finite("TrajectoryData", {"ts": self.ts, "q": self.q, "qd": self.qd})
+        check_increasing("TrajectoryData", self.ts)
+
+
+def _rows_text(rows: np.ndarray, total: int) -> str:
+    shown = ", ".join(str(int(r)) for r in rows[:10])
+    more = f", … ({len(rows) - 10} more)" if len(rows) > 10 else ""
+    return f"{len(rows)} of {total} rows: [{shown}{more}]"
+
+
+def _is_concrete(x: object) -> bool:
+    return x is not None and not isinstance(x, Tracer)
+
+
+def check_finite(owner: str, fields: dict[str, Any]) -> None:
+    """Raise a ValueError naming the first field of ``fields`` with non-finite values and its rows
+    (indices along the leading axis). Tracers (under ``jit``) are not checked."""
+    for name, x in fields.items():
+        if not _is_concrete(x) or not jnp.issubdtype(jnp.result_type(x), jnp.inexact):
+            continue
+        values = np.asarray(x)
+        if values.ndim == 0:
+            if not np.isfinite(values):
+                raise ValueError(f"{owner}: {name} is not finite ({values}).")
+            continue
+        if values.shape[0] == 0:
+            continue
+        bad = ~np.all(np.isfinite(values.reshape(values.shape[0], -1)), axis=1)
+        if np.any(bad):
+            raise ValueError(
+                f"{owner}: {name} is not finite (NaN or ±inf) in "
+                f"{_rows_text(np.flatnonzero(bad), values.shape[0])}. Drop or repair those rows, e.g. "
+                "keep = np.all(np.isfinite(x), axis=1) for each field x and "
+                "jax.tree.map(lambda x: x[keep], data)."
+            )
+
+
+def check_increasing(owner: str, ts: ArrayLike, name: str = "ts") -> None:
+    """Raise a ValueError naming the rows of ``ts`` (batch, times) whose times do not increase."""
+    if not _is_concrete(ts):
+        return
+    ts = np.asarray(ts)
+    steps = np.diff(ts, axis=1)
+    bad = ~np.all(steps > 0, axis=1)
+    if np.any(bad):
+        rows = np.flatnonzero(bad)
+        first = int(rows[0])
+        where = int(np.flatnonzero(~(steps[first] > 0))[0])
+        raise ValueError(
+            f"{owner}: {name} must increase strictly along each trajectory; it does not in "
+            f"{_rows_text(rows, ts.shape[0])} (row {first}: {name}[{first}, {where}] = "
+            f"{float(ts[first, where])}, {name}[{first}, {where + 1}] = {float(ts[first, where + 1])})."
+        )
+
+
+def check_values(data: PyTree[Array], name: str) -> None:
+    """The eager checks of `train` on a data set: at least one row, finite values (and, for
+    `TrajectoryData`, increasing times), naming the field and the rows of a failure. Data built
+    under ``jit`` or by ``jax.tree.map`` skips the checks of the constructors; this does not."""
+    rows = batch_size(data)
+    if rows == 0:
+        raise ValueError(f"train: {name} has no rows (its leading, batch axis has length 0).")
+    leaves = jax.tree_util.tree_leaves_with_path(data)
+    check_finite("train", {name + jax.tree_util.keystr(path): x for path, x in leaves})
+    if isinstance(data, TrajectoryData):
+        check_increasing("train", data.ts, f"{name}.ts")
+
+
+def finite_rows(*arrays: Array | None) -> Array:
+    """``(batch,)``: the rows at which every one of ``arrays`` (leading axis ``batch``) is finite."""
+    ok = None
+    for x in arrays:
+        if x is None:
+            continue
+        row = jnp.all(jnp.isfinite(x.reshape(x.shape[0], -1)), axis=1)
+        ok = row if ok is None else ok & row
+    assert ok is not None
+    return ok
 
 
 def batch_size(data: PyTree[Array]) -> int:

@@ -2,8 +2,12 @@ r"""Learned accelerations without checks, and the losses of learned Lagrangians.
 
 Every loss returns a `LossValue`: the mean over the members whose prediction is finite,
 and the number of members that were not (an indefinite learned ``M = ∂²L/∂q̇²``, a rollout that
-blew up). Failed members are excluded from the mean and from its gradient, never averaged in as
-NaN: one bad state does not poison the batch.
+blew up, a row of the data that is not finite). Failed members are excluded from the mean and from
+its gradient, never averaged in as NaN: one bad state does not poison the batch. Masking the
+output alone would not do that: in the backward pass a zero cotangent times a non-finite partial
+derivative is NaN (``0 · NaN``), and the weights are shared by all members. So the losses mask the
+*inputs* of the computation too (the double ``where``): a failed member's row is replaced by a
+finite row before any arithmetic, and its result by its target before the error is formed.
 """
 
 from collections.abc import Callable
@@ -12,7 +16,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from .._batch.batch import simulate_batch
 from .._checks import Checks
@@ -22,7 +26,7 @@ from .._mechanics import lagrangian as _lagrangian
 from .._mechanics.mass_solve import RobustSolve
 from .._solver.rk4 import RK4
 from .._system import System
-from ._data import StateData, TrajectoryData, segments
+from ._data import StateData, TrajectoryData, finite_rows, segments
 from ._models import AbstractLagrangian
 
 Model = AbstractLagrangian | System | Callable
@@ -70,9 +74,12 @@ class LossValue(eqx.Module):
     failed: Int[Array, ""]
 
 
-def masked_mean(errors: Float[Array, " batch"]) -> LossValue:
-    """Mean of the finite ``errors`` (``inf`` if none is), and how many were not finite."""
-    ok = jnp.isfinite(errors)
+def masked_mean(errors: Float[Array, " batch"], ok: Bool[Array, " batch"] | None = None) -> LossValue:
+    """Mean of the finite ``errors`` at the members ``ok`` (``inf`` if there is none), and how many
+    members were left out. The errors of the members left out must not come from non-finite
+    arithmetic (mask the inputs first, see the module's docstring): the ``where`` here drops their
+    value, not the NaN of their gradient."""
+    ok = jnp.isfinite(errors) if ok is None else ok & jnp.isfinite(errors)
     count = jnp.sum(ok)
     total = jnp.sum(jnp.where(ok, errors, 0.0))
     value = jnp.where(count > 0, total / jnp.maximum(count, 1).astype(errors.dtype), jnp.inf)
@@ -94,24 +101,43 @@ class AccelerationLoss(AbstractLoss):
     r"""Mean over states of ``Σᵢ ((q̈ᵢ − q̈ᵢᵈᵃᵗᵃ) / scaleᵢ)²`` on `StateData`.
 
     ``q̈`` from `accelerations` (``M q̈ = F + Jᵀλ``); the data's known generalized forces
-    ``StateData.forces`` (motor torques), if given, are part of ``F``. ``scale`` (n,): e.g. the standard
-    deviation of the data's accelerations per coordinate, so that every coordinate weighs alike
-    (``None``: 1). States whose ``q̈`` is not finite are counted in ``failed`` and left out.
+    ``StateData.forces`` (motor torques), if given, are part of ``F``. ``scale`` (n,): relative
+    weights of the coordinates (``None``: 1), e.g. ``σ / rms(σ)`` with ``σ`` the standard deviation
+    of the data's accelerations per coordinate, so that every coordinate weighs alike and the loss
+    keeps the size of the plain mean squared error ([`Recipe.loss`][jaxlag.learned.Recipe.loss]).
+    Dividing by ``σ`` itself also divides the loss and its gradient by ``rms(σ)²``, which can switch
+    off a gradient clip tuned on the plain loss. States whose ``q̈`` is not finite, and rows of the
+    data that are not (which `StateData` refuses when built eagerly, but not under ``jit``), are
+    counted in ``failed`` and left out of the value and of the gradient. If every state fails the
+    value is ``inf``.
     """
 
     scale: Float[Array, " n"] | None = None
 
     def __call__(self, model: Model, data: StateData) -> LossValue:  # pyright: ignore[reportIncompatibleMethodOverride]
+        # Rows of the data that are not finite are replaced by the first finite row before the
+        # model sees them: the backward pass through them would be 0 · NaN (module docstring).
+        ok = finite_rows(data.q, data.qd, data.qdd, data.forces)
+        donor = jnp.argmax(ok)
+
+        def safe(x):
+            return jnp.where(ok[:, None], x, x[donor])
+
+        q, qd, target = safe(data.q), safe(data.qd), safe(data.qdd)
         if data.forces is None:
             system = as_system(model)
-            predicted = jax.vmap(lambda q, qd: accelerations(system, q, qd))(data.q, data.qd)
+            predicted = jax.vmap(lambda q, qd: accelerations(system, q, qd))(q, qd)
         else:
             system = _with_known_forces(model)
             predicted = jax.vmap(lambda q, qd, f: accelerations(system, q, qd, args=f))(
-                data.q, data.qd, data.forces
+                q, qd, safe(data.forces)
             )
-        errors = jnp.sum(_scaled(predicted - data.qdd, self.scale) ** 2, axis=-1)
-        return masked_mean(errors)
+        # A state whose solve failed is NaN with a zero gradient (RobustSolve); it is replaced by
+        # its target before the error is formed, so that no NaN enters the arithmetic either.
+        ok = ok & finite_rows(predicted)
+        predicted = jnp.where(ok[:, None], predicted, target)
+        errors = jnp.sum(_scaled(predicted - target, self.scale) ** 2, axis=-1)
+        return masked_mean(errors, ok)
 
 
 def _known_forces(q, qd, args):
@@ -197,21 +223,31 @@ class RolloutLoss(AbstractLoss):
         return traj.q, traj.qd, ok
 
     def __call__(self, model: Model, data: TrajectoryData) -> LossValue:  # pyright: ignore[reportIncompatibleMethodOverride]
+        # Members whose data are not finite (refused by TrajectoryData when built eagerly, not
+        # under jit) fail too: their rows are replaced by a finite member's before any arithmetic.
+        ok = finite_rows(data.q, data.qd)
+        donor = jnp.argmax(ok)
+        q0 = jnp.where(ok[:, None], data.q[:, 0], data.q[donor, 0])
+        qd0 = jnp.where(ok[:, None], data.qd[:, 0], data.qd[donor, 0])
         # Forward only: which members fail. Then the differentiated rollout, with every failed
         # member restarted from the first finished member's initial state, so that no step of the
         # backward pass meets a non-finite state (see the class docstring).
-        _, _, ok = jax.lax.stop_gradient(self.rollout(_without_gradient(model), data))
+        _, _, finished = jax.lax.stop_gradient(self.rollout(_without_gradient(model), data, q0, qd0))
+        ok = ok & finished
         donor = jnp.argmax(ok)
         q0 = jnp.where(ok[:, None], data.q[:, 0], data.q[donor, 0])
         qd0 = jnp.where(ok[:, None], data.qd[:, 0], data.qd[donor, 0])
         q, qd, _ = self.rollout(model, data, q0, qd0)
-        # Mask the copies' states before any arithmetic (their backward pass then sees zeros).
-        q = jnp.where(ok[:, None, None], q, data.q)
-        qd = jnp.where(ok[:, None, None], qd, data.qd)
-        errors = jnp.sum(_scaled(q - data.q, self.scale) ** 2, axis=-1)
+        # Mask the copies' states and their targets before any arithmetic (their backward pass
+        # then sees zeros).
+        target_q = jnp.where(ok[:, None, None], data.q, data.q[donor])
+        target_qd = jnp.where(ok[:, None, None], data.qd, data.qd[donor])
+        q = jnp.where(ok[:, None, None], q, target_q)
+        qd = jnp.where(ok[:, None, None], qd, target_qd)
+        errors = jnp.sum(_scaled(q - target_q, self.scale) ** 2, axis=-1)
         if self.velocities:
-            errors = errors + jnp.sum(_scaled(qd - data.qd, self.scale) ** 2, axis=-1)
-        return masked_mean(jnp.where(ok, jnp.mean(errors, axis=1), jnp.nan))
+            errors = errors + jnp.sum(_scaled(qd - target_qd, self.scale) ** 2, axis=-1)
+        return masked_mean(jnp.mean(errors, axis=1), ok)
 
 
 def _without_gradient(tree):
@@ -235,7 +271,15 @@ class MultipleShootingLoss(AbstractLoss):
 
 
 def state_data(model: Model, data: TrajectoryData, args: Args = None) -> StateData:
-    """The states of ``data`` with the accelerations of a known ``model`` (e.g. a ready system)."""
+    """The states of ``data`` with the accelerations of a known ``model`` (e.g. a ready system):
+    ``state_data(model, data)``, the model first."""
+    if isinstance(model, (TrajectoryData, StateData)) or not isinstance(data, TrajectoryData):
+        raise TypeError(
+            "state_data(model, data) takes the model (a jl.System, a learned model or a function "
+            "L(q, qd)) first and the TrajectoryData second; got "
+            f"({type(model).__name__}, {type(data).__name__})"
+            + (": swap the arguments." if isinstance(model, TrajectoryData) else ".")
+        )
     n = data.q.shape[-1]
     q, qd = data.q.reshape(-1, n), data.qd.reshape(-1, n)
     system = as_system(model)

@@ -64,6 +64,16 @@ def _in_size(embedding: AngleEmbedding | None, n: int) -> int:
     return n if embedding is None else embedding.size(n)
 
 
+def _check_size(model: str, n: int, q: Array, qd: Array) -> None:
+    """A clear error for data of another size than the model's (static shapes: at trace time)."""
+    if jnp.shape(q) != (n,) or jnp.shape(qd) != (n,):
+        raise ValueError(
+            f"{model}: the model has n = {n} coordinates, but it was called with q of shape "
+            f"{jnp.shape(q)} and qd of shape {jnp.shape(qd)}: the data's n (the last axis of "
+            f"q, qd and qdd) must equal the model's n = {n}."
+        )
+
+
 class AbstractLagrangian(eqx.Module):
     r"""A learned Lagrangian ``L(q, q̇)``: an equinox Module of weights, callable as ``L(q, qd)``.
 
@@ -120,7 +130,17 @@ class MLPLagrangian(AbstractLagrangian):
             mlp = eqx.tree_at(lambda m: m.layers[-1].weight, mlp, jnp.abs(mlp.layers[-1].weight))
         self.mlp = mlp
 
+    @property
+    def n(self) -> int:
+        """The number of coordinates: the MLP reads ``φ(q)`` (``n`` plus one per embedded angle)
+        and ``q̇`` (``n``)."""
+        angles = 0 if self.embedding is None else len(self.embedding.angles)
+        size = self.mlp.in_size
+        assert isinstance(size, int)  # the MLP reads a vector, never a scalar
+        return (size - angles) // 2
+
     def __call__(self, q: Coordinates, qd: Velocities) -> Scalar:
+        _check_size("MLPLagrangian", self.n, q, qd)
         return self.mlp(jnp.concatenate([_features(self.embedding, q), qd]))
 
 
@@ -186,6 +206,7 @@ class DeLaN(AbstractLagrangian):
         return self.potential_net(_features(self.embedding, q))
 
     def __call__(self, q: Coordinates, qd: Velocities) -> Scalar:
+        _check_size("DeLaN", self.n, q, qd)
         v = self.factor(q).T @ qd
         return 0.5 * jnp.dot(v, v) - self.potential(q)
 
@@ -238,7 +259,13 @@ class ConstrainedLagrangian(AbstractLagrangian):
         """``V(x)``."""
         return self.potential_net(x)
 
+    @property
+    def n(self) -> int:
+        """The number of coordinates, ``bodies · dim``."""
+        return self.raw_masses.shape[0] * self.dim
+
     def __call__(self, q: Coordinates, qd: Velocities) -> Scalar:
+        _check_size("ConstrainedLagrangian", self.n, q, qd)
         speeds = jnp.sum(qd.reshape(-1, self.dim) ** 2, axis=1)
         return 0.5 * jnp.dot(self.masses().astype(qd.dtype), speeds) - self.potential(q)
 
