@@ -28,8 +28,8 @@ from jax.typing import DTypeLike
 from jaxtyping import Array, Float, PyTree
 
 from . import _compile as compilation
+from ._batch_members import batch_prefix, failed_members, member
 from ._custom_types import Args, Validated
-from ._diagnosis import batch_prefix, failed_members, member
 from ._errors import AbstractOnFailure, FailureCode, RaiseOnFailure, compiled_check
 from ._mechanics import constraints as _constraints
 from ._mechanics.kkt import accelerations_and_multipliers

@@ -17,6 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _compile as compilation
+from ._batch_members import batch_prefix, failed_members, member
+from ._checks import validate_initial_state
 from ._errors import Failure, FailureCode, SimulationError
 from ._mechanics import constraints as _constraints
 from ._mechanics.kkt import accelerations_and_multipliers
@@ -538,8 +540,6 @@ def _refused_text(code, failure: Failure, system, args) -> str:
         entry = "" if index is None else f": ts[{index}] = {value:g} is not followed by a later time"
         return f"The save times ts must be strictly increasing and finite{entry}." + compiled
     if system is not None:
-        from ._checks import validate_initial_state  # (the checks use this module's helpers)
-
         q, qd = jnp.asarray(failure.q), jnp.asarray(failure.qd)
         try:
             validate_initial_state(system, q, qd, jnp.asarray(failure.t0, q.dtype), args, None)
@@ -604,36 +604,6 @@ def _diagnosis(system, failure: Failure, args) -> str:
 
 
 # ----------------------------------------------------------------------------- raising
-def member(tree, index):
-    """Member ``index`` of a batched host pytree. Leaves carry the batch axes first, of full size
-    or of size 1 (shared by every member)."""
-
-    def take(x):
-        x = np.asarray(x)
-        return x[tuple(i if x.shape[k] > 1 else 0 for k, i in enumerate(index))]
-
-    return jax.tree.map(take, tree)
-
-
-def failed_members(flags):
-    """Indices (tuples) of the batch members whose flag is set (``[()]`` unbatched)."""
-    flags = np.asarray(flags)
-    if flags.ndim == 0:
-        return [()] if bool(flags) else []
-    return [tuple(int(i) for i in index) for index in zip(*np.nonzero(flags))]
-
-
-def batch_prefix(index, flags, members) -> str:
-    """``"3 of 64 batch members failed (first: member [5])."`` or ``""`` when unbatched."""
-    if not index:
-        return ""
-    where = ", ".join(str(i) for i in index)
-    return (
-        f"{len(members)} of {np.asarray(flags).size} batch members failed (first: member "
-        f"[{where}]). Member [{where}]: "
-    )
-
-
 def message(failure: Failure, system=None, args=None, *, args_batched=False, events=None) -> str | None:
     """The full message for a (possibly batched) host failure record, or None.
 
