@@ -13,11 +13,19 @@ Models (``jaxlag.learned``), all MLPs of width 64 and depth 2 with softplus:
 * CLNN: ``ConstrainedLagrangian`` in the Cartesian positions of the bobs, learned masses and
   potential, the known rod constraints ``|x_k − x_{k−1}| = 1`` imposed by the KKT solve.
 
-Training defaults (compared with a plain recipe, adam(1e-3) on raw targets, by ``--recipes``):
-accelerations normalized per coordinate by the training set's standard deviation, minibatches of
-256 states, adam with a warm-up and cosine decay (peak 3e-3), gradient clipping, then a short
-multiple-shooting fine-tune (segments of 5 samples = 0.2 s, RK4 at the sample step) at 3e-4, whose
-steps with a non-finite gradient are skipped (``optax.apply_if_finite``).
+Training: the library's recipe, ``jll.Recipe()`` (compared with a plain recipe, adam(1e-3) on
+raw targets, by ``--recipes``): the coordinates of the accelerations balanced by their standard
+deviations in the training set (``σ / rms(σ)``), minibatches of 256 states, adam with a warm-up
+and cosine decay (peak 3e-3), gradient clipping, then a short multiple-shooting fine-tune
+(segments of 5 samples = 0.2 s, RK4 at the sample step) at 3e-4; ``jll.train`` skips a step whose
+gradient is not finite. ``fit`` runs the two ``jll.train`` calls of ``jll.train_recipe`` with the
+recipe's losses and optimizers, drawing the minibatches of the second phase with
+``PRNGKey(seed + 1)``.
+
+``--hand-written`` trains ``jll.DeLaN`` and ``jll.ConstrainedLagrangian`` next to the same forms
+written by hand through ``jl.System`` on a user's setting (8 trajectories of 101 samples, width
+128, depth 3, clipped adam with a cosine decay from 1e-3, BENCH_HAND_STEPS full-batch steps) and
+writes its section of RESULTS_learned.md.
 
 Metric: held-out rollouts (``jl.simulate_batch``, Tsit5, rtol 1e-7, atol 1e-9) from the true
 initial states; error = RMS over the bobs of the Euclidean position error of each bob, in metres
@@ -46,6 +54,7 @@ import time
 from pathlib import Path
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -117,19 +126,15 @@ def cartesian_data(data: jll.TrajectoryData) -> jll.TrajectoryData:
     return jll.TrajectoryData(data.ts, x, xd)
 
 
-_OPTIMIZERS = {}
-
-
-def optimizers(steps):
-    """One optimizer object per schedule, reused so that the compiled step is reused."""
-    if steps not in _OPTIMIZERS:
-        schedule = optax.warmup_cosine_decay_schedule(0.0, 3e-3, max(steps // 20, 1), steps, 1e-5)
-        first = optax.chain(optax.clip_by_global_norm(10.0), optax.adam(schedule))
-        # The rollout loss leaves failed members out of the gradient; a minibatch in which every
-        # member fails has none: skip such a step instead of poisoning the weights.
-        second = optax.apply_if_finite(optax.chain(optax.clip_by_global_norm(1.0), optax.adam(3e-4)), 50)
-        _OPTIMIZERS[steps] = (first, second)
-    return _OPTIMIZERS[steps]
+def library_recipe() -> jll.Recipe:
+    """The library's recipe at this run's step counts (its defaults: 2000 + 200 steps)."""
+    return jll.Recipe(
+        steps=STEPS,
+        shooting_steps=SHOOTING_STEPS,
+        batch_size=BATCH,
+        segment_length=SEGMENT,
+        shooting_batch_size=SHOOTING_BATCH,
+    )
 
 
 #: The plain recipe: adam(1e-3) on the raw accelerations, full batch, no
@@ -148,16 +153,15 @@ def fit(kind, links, train_angles, true_cartesian, true_angles, seed, recipe="de
     else:
         data = train_angles
         states = jll.state_data(true_angles, data)
-    scale = jnp.std(states.qdd, axis=0)
-    first, second = optimizers(STEPS)
+    defaults = library_recipe()
     if recipe == "plain":
-        first, scale, batch = ISSUE_OPTIMIZER, None, None
+        loss, first, batch = jll.AccelerationLoss(), ISSUE_OPTIMIZER, None
     else:
-        batch = min(BATCH, states.q.shape[0])
+        loss, first, batch = defaults.loss(states), defaults.optimizer(), min(BATCH, states.q.shape[0])
     start = time.perf_counter()
     result = jll.train(
         model,
-        jll.AccelerationLoss(scale=scale),
+        loss,
         states,
         optimizer=first,
         steps=STEPS,
@@ -168,13 +172,11 @@ def fit(kind, links, train_angles, true_cartesian, true_angles, seed, recipe="de
     accel_failed = int(result.failed[-min(100, len(result.failed)) :].sum())
     if SHOOTING_STEPS and recipe != "plain":
         pieces = jll.segments(data, SEGMENT)
-        spread = jnp.std(data.q.reshape(-1, data.q.shape[-1]), axis=0)
-        loss = jll.MultipleShootingLoss(SEGMENT, jll.RolloutLoss(scale=spread))
         result = jll.train(
             model,
-            loss,
+            defaults.shooting_loss(data),
             pieces,
-            optimizer=second,
+            optimizer=defaults.shooting_optimizer(),
             steps=SHOOTING_STEPS,
             batch_size=min(SHOOTING_BATCH, pieces.q.shape[0]),
             key=jax.random.PRNGKey(seed + 1),
@@ -289,6 +291,165 @@ def main():
     write_report(rows)
 
 
+# ------------------------------------------------------------------ library models vs hand-written
+HAND_TRAJECTORIES = 4 if QUICK else 8
+HAND_SAMPLES = 11 if QUICK else 101  # every DT: 5 s
+HAND_WIDTH, HAND_DEPTH = 128, 3
+HAND_STEPS = 20 if QUICK else int(os.environ.get("BENCH_HAND_STEPS", "2000"))
+#: Where `compare_hand_written` writes its section of RESULTS_learned.md (kept by `write_report`).
+HAND_BEGIN, HAND_END = "<!-- hand-written: begin -->", "<!-- hand-written: end -->"
+
+
+class HandDeLaN(eqx.Module):
+    """A DeLaN as one writes it by hand: ``L = ½ q̇ᵀ C Cᵀ q̇ − V``, ``C`` lower triangular with a
+    softplus diagonal, both from MLPs of ``(cos θ, sin θ)``; simulated through ``jl.System(L)``."""
+
+    factor_net: eqx.nn.MLP
+    potential_net: eqx.nn.MLP
+
+    def __init__(self, key):
+        k1, k2 = jax.random.split(key)
+        self.factor_net = eqx.nn.MLP(4, 3, HAND_WIDTH, HAND_DEPTH, jax.nn.softplus, key=k1)
+        self.potential_net = eqx.nn.MLP(4, "scalar", HAND_WIDTH, HAND_DEPTH, jax.nn.softplus, key=k2)
+
+    def __call__(self, q, qd):
+        features = jnp.concatenate([jnp.cos(q), jnp.sin(q)])
+        out = self.factor_net(features)
+        diagonal = jax.nn.softplus(out[:2]) + 1e-3
+        factor = jnp.array([[diagonal[0], 0.0], [out[2], diagonal[1]]])
+        v = factor.T @ qd
+        return 0.5 * v @ v - self.potential_net(features)
+
+
+class HandConstrained(eqx.Module):
+    """A constrained Lagrangian as one writes it by hand: ``L = ½ Σ m_b |ẋ_b|² − V(x)`` with
+    ``m_b = exp(μ_b)`` (1 at the start) and an MLP ``V``; ``jl.System(L, holonomic=rods)``."""
+
+    log_masses: jax.Array
+    potential_net: eqx.nn.MLP
+
+    def __init__(self, key):
+        self.log_masses = jnp.zeros(2)
+        self.potential_net = eqx.nn.MLP(4, "scalar", HAND_WIDTH, HAND_DEPTH, jax.nn.softplus, key=key)
+
+    def __call__(self, x, xd):
+        return 0.5 * jnp.sum(jnp.repeat(jnp.exp(self.log_masses), 2) * xd**2) - self.potential_net(x)
+
+
+#: (name, form, targets): the model and the acceleration targets it is trained on. ``library``:
+#: `jll.Recipe().loss(states)`; ``scaled``: every coordinate divided by its standard deviation
+#: (what the library did before, the cookbook's ``AccelerationLoss(scale=qdd.std(axis=0))``);
+#: ``raw``: ``jll.AccelerationLoss()``, the plain mean squared error.
+HAND_CONTENDERS = (
+    ("jll.DeLaN", "DeLaN", "scaled"),
+    ("jll.DeLaN", "DeLaN", "library"),
+    ("hand-written DeLaN", "DeLaN", "raw"),
+    ("jll.ConstrainedLagrangian", "CLNN", "scaled"),
+    ("jll.ConstrainedLagrangian", "CLNN", "library"),
+    ("hand-written constrained", "CLNN", "raw"),
+    ("hand-written constrained", "CLNN", "scaled"),
+)
+
+
+def hand_model(name, key):
+    if name == "jll.DeLaN":
+        return jll.DeLaN(2, HAND_WIDTH, HAND_DEPTH, key=key, embedding=jll.AngleEmbedding((0, 1)))
+    if name == "jll.ConstrainedLagrangian":
+        return jll.ConstrainedLagrangian(2, 2, rods, HAND_WIDTH, HAND_DEPTH, key=key)
+    if name == "hand-written DeLaN":
+        return jl.System(HandDeLaN(key))
+    return jl.System(HandConstrained(key), holonomic=rods)
+
+
+def hand_loss(targets, states):
+    if targets == "library":
+        return jll.Recipe().loss(states)
+    if targets == "scaled":
+        return jll.AccelerationLoss(scale=jnp.std(states.qdd, axis=0))
+    return jll.AccelerationLoss()
+
+
+def compare_hand_written():
+    """The library's DeLaN and constrained Lagrangian against hand-written ones through ``jl.System``.
+
+    A user's setting: double pendulum, HAND_TRAJECTORIES trajectories of HAND_SAMPLES samples
+    every DT, MLPs of width 128 and depth 3, adam with its gradient clipped to norm 1 and a
+    cosine decay from 1e-3, HAND_STEPS full-batch steps; θ̈ RMS on the held-out trajectories of
+    `main`. Every contender starts from the same key; the pairs differ in the model and in the
+    acceleration targets (HAND_CONTENDERS). Writes its section of RESULTS_learned.md.
+    """
+    optimizer = optax.chain(
+        optax.clip_by_global_norm(1.0), optax.adam(optax.cosine_decay_schedule(1e-3, HAND_STEPS))
+    )
+    angles, cartesian = true_system(2)
+    rows = []
+    started = time.perf_counter()
+    for seed in SEEDS:
+        k_train, k_test = jax.random.split(jax.random.PRNGKey(seed))
+        pool = trajectories_for(angles, 2, k_train, HAND_TRAJECTORIES, (HAND_SAMPLES - 1) * DT)
+        test = trajectories_for(angles, 2, k_test, HELD_OUT, T_TEST)
+        true_accelerations = np.asarray(jll.state_data(angles, test).qdd)
+        for name, form, targets in HAND_CONTENDERS:
+            data = cartesian_data(pool) if form == "CLNN" else pool
+            states = jll.state_data(cartesian if form == "CLNN" else angles, data)
+            model = hand_model(name, jax.random.PRNGKey(1000 + seed))
+            start = time.perf_counter()
+            result = jll.train(
+                model, hand_loss(targets, states), states, optimizer=optimizer, steps=HAND_STEPS
+            )
+            seconds = time.perf_counter() - start
+            predicted = np.asarray(angular_accelerations(form, result.model, test))
+            ok = np.all(np.isfinite(predicted), axis=1)
+            rms = float(np.sqrt(np.mean((predicted[ok] - true_accelerations[ok]) ** 2)))
+            rows.append(
+                {"seed": seed, "name": name, "targets": targets, "rms": rms, "failed": int(np.sum(~ok))}
+            )
+            print(
+                f"[{time.perf_counter() - started:7.1f}s] seed {seed} {name:26s} {targets:8s} "
+                f"θ̈ RMS {rms:.4g} failed {int(np.sum(~ok))} train {seconds:.0f}s",
+                flush=True,
+            )
+    write_hand_written_report(rows)
+
+
+def write_hand_written_report(rows):
+    date = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    lines = [
+        HAND_BEGIN,
+        "## Library models against hand-written ones (`python -m benchmarks.bench_learned --hand-written`)",
+        "",
+        f"{date}; {_cpu_name()}, one pinned core; jax {jax.__version__}, float64. Double pendulum, "
+        f"{HAND_TRAJECTORIES} trajectories of {HAND_SAMPLES} samples every {DT} s (θ, θ̇ ~ U(−1, 1)), MLPs of "
+        f"width {HAND_WIDTH} and depth {HAND_DEPTH}, adam with the gradient clipped to norm 1 and a cosine "
+        f"decay from 1e-3, {HAND_STEPS} full-batch steps, the same initial key for every contender. θ̈ RMS "
+        f"(rad/s²) on the {HELD_OUT} held-out 4 s trajectories of each seed. Targets: *scaled*, every "
+        "coordinate divided by its standard deviation (the library's advice before); *library*, "
+        "`jll.Recipe().loss(states)`; *raw*, `jll.AccelerationLoss()`.",
+        "",
+        "| model | targets | " + " | ".join(f"seed {seed}" for seed in SEEDS) + " |",
+        "|---|---|" + "---|" * len(SEEDS),
+    ]
+    for name, _, targets in HAND_CONTENDERS:
+        cells = []
+        for seed in SEEDS:
+            row = next(r for r in rows if r["seed"] == seed and r["name"] == name and r["targets"] == targets)
+            cells.append(f"{row['rms']:.3g}" + (f" ({row['failed']} failed)" if row["failed"] else ""))
+        lines.append(f"| {name} | {targets} | " + " | ".join(cells) + " |")
+    lines.append(HAND_END)
+    section = "\n".join(lines) + "\n"
+    print(section)
+    if QUICK:
+        return
+    path = ROOT / "benchmarks" / "RESULTS_learned.md"
+    path.write_text(_without_hand_written(path.read_text()).rstrip("\n") + "\n\n" + section)
+
+
+def _without_hand_written(text):
+    if HAND_BEGIN not in text:
+        return text
+    return text[: text.index(HAND_BEGIN)] + text[text.index(HAND_END) + len(HAND_END) :].lstrip("\n")
+
+
 RECIPE_SIZES = (2, 8, 32)
 
 
@@ -354,7 +515,7 @@ def write_recipes_report(rows):
         f"Double pendulum, the data of `bench_learned.py` (θ, θ̇ ~ U(−1, 1), 2 s at 0.05 s), {len(SEEDS)} "
         f"seeds, {HELD_OUT} held-out 4 s trajectories per seed, the same models (width {WIDTH}, depth "
         f"{DEPTH}) and the same initial weights for both recipes. *plain*: adam(1e-3) on the raw "
-        f"accelerations, full batch, {STEPS} steps. *defaults*: per-coordinate scaled accelerations, "
+        f"accelerations, full batch, {STEPS} steps. *defaults*: `jll.Recipe()`, balanced accelerations, "
         f"minibatches of {BATCH}, warm-up + cosine adam (peak 3e-3) with clipping, {STEPS} steps, then "
         f"{SHOOTING_STEPS} multiple-shooting steps. θ̈ RMS in rad/s² over all held-out states "
         "(RMS over seeds); rollout error in metres, median over held-out trajectories × seeds; "
@@ -500,7 +661,11 @@ def write_report(rows):
         lines.append(f"| {name} | — | still / zero | {cells} | {zero_text} | — |")
     text = "\n".join(lines) + "\n"
     out = Path(tempfile.gettempdir()) if QUICK else ROOT / "benchmarks"
-    (out / "RESULTS_learned.md").write_text(text)
+    previous = out / "RESULTS_learned.md"
+    if previous.exists() and HAND_BEGIN in previous.read_text():  # keep the hand-written comparison
+        old = previous.read_text()
+        text += "\n" + old[old.index(HAND_BEGIN) : old.index(HAND_END) + len(HAND_END)] + "\n"
+    previous.write_text(text)
     print(text)
     plot(summary)
 
@@ -546,5 +711,7 @@ if __name__ == "__main__":
         write_report(json.loads(ROWS.read_text()))
     elif "--recipes" in sys.argv:  # a plain recipe against the defaults
         compare_recipes()
+    elif "--hand-written" in sys.argv:  # the library's models against hand-written ones
+        compare_hand_written()
     else:
         main()
