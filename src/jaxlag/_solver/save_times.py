@@ -75,7 +75,7 @@ class SaveTimes(ForwardingSolver, diffrax.AbstractWrappedSolver):
 
     def init(self, terms, t0, t1, y0, args):
         inner = self.solver.init(terms, t0, t1, y0, args)
-        shapes = jax.eval_shape(self.fn, t0, y0, args)
+        shapes = jax.eval_shape(lambda t, y: self.fn(t, y, args), t0, y0)  # args may hold functions
         count = self.ts.shape[0]
         values = jax.tree.map(lambda s: jnp.full((count, *s.shape), jnp.inf, s.dtype), shapes)
         return SavedTimesState(inner, jnp.zeros((), jnp.int32), values)
