@@ -1,0 +1,72 @@
+r"""The articulated-body algorithm: forward dynamics ``v̇ = M⁻¹(τ − damping · v − C v − g)``, O(links)."""
+
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from ._kinematics import as_state, link_velocities
+from ._recursion import ascend, descend
+from ._spatial import force_cross, motion_cross, spatial_inertia
+from ._tree import KinematicTree, joint_bias, joint_motion, layout, padded, unpadded
+
+
+def forward_dynamics(
+    tree: KinematicTree,
+    q: Float[ArrayLike, " nq"],
+    v: Float[ArrayLike, " nv"],
+    force: Float[ArrayLike, " nv"] | None = None,
+) -> Float[Array, " nv"]:
+    r"""The acceleration ``v̇`` that solves ``M(q) v̇ + C(q, v) v + g(q) = τ − damping · v``
+    (MuJoCo's ``qacc`` without contacts or limits), by Featherstone's articulated-body algorithm.
+
+    Outward: link velocities ``v_i`` and velocity-product accelerations ``c_i = Ṡ_i v + v_i × S_i v``;
+    inward, the articulated inertias and bias forces: ``U_i = I^A_i S_i``, ``D_i = S_iᵀ U_i +
+    diag(armature)``, ``u_i = τ_i − S_iᵀ p^A_i``, passing ``X_iᵀ (I^A_i − U_i D_i⁻¹ U_iᵀ) X_i`` and
+    ``X_iᵀ (p^A_i + I^a_i c_i + U_i D_i⁻¹ u_i)`` to the parent; outward again,
+    ``v̇_i = D_i⁻¹ (u_i − U_iᵀ (X_i a_λ + c_i))`` from the world's ``a_0 = (0, −g)``.
+
+    Args:
+        tree: the robot.
+        q, v: configuration and velocity (see [`KinematicTree`][jaxlag.robots.KinematicTree]).
+        force: the applied joint forces ``τ`` (``nv``); zero if omitted.
+    """
+    q = as_state(tree, q)
+    v = as_state(tree, v)
+    tau = jnp.zeros_like(v) if force is None else as_state(tree, force)
+    lay = layout(tree)
+    motion = joint_motion(tree, q)
+    transform, joint_velocity, velocities = link_velocities(tree, motion, v)
+    product = joint_bias(tree, q, v) + jnp.einsum("lij,lj->li", motion_cross(velocities), joint_velocity)
+    inertia = spatial_inertia(tree.mass, tree.com, tree.inertia)
+    bias = jnp.einsum("lij,lj->li", force_cross(velocities), jnp.einsum("lij,lj->li", inertia, velocities))
+    # Past a joint's degrees of freedom its rows are padding: D gets 1 there so that it stays
+    # invertible, and u and S are 0, so the padded accelerations are 0.
+    mask = jnp.asarray(lay.dof_mask)
+    diagonal = jnp.where(mask, padded(tree, tree.armature), jnp.ones_like(mask, dtype=q.dtype))
+    applied = padded(tree, tau - tree.damping * v)
+
+    def inward(total, x):
+        articulated, pressure = total
+        xi, si, ci, taui, di = x
+        u_mat = articulated @ si
+        d_inv = jnp.linalg.inv(si.T @ u_mat + jnp.diag(di))
+        u = taui - si.T @ pressure
+        reduced = articulated - u_mat @ d_inv @ u_mat.T
+        passed = pressure + reduced @ ci + u_mat @ (d_inv @ u)
+        return (xi.T @ reduced @ xi, xi.T @ passed), (u_mat, d_inv, u)
+
+    u_mats, d_invs, us = ascend(
+        lay.parent_slot, (inertia, bias), inward, (transform, motion.subspace, product, applied, diagonal)
+    )
+
+    def outward(parent, x):
+        a_parent, _ = parent
+        xi, si, ci, u_mat, d_inv, u = x
+        a = xi @ a_parent + ci
+        acceleration = d_inv @ (u - u_mat.T @ a)
+        return a + si @ acceleration, acceleration
+
+    root = (jnp.concatenate([jnp.zeros(3, dtype=q.dtype), -tree.gravity]), jnp.zeros(6, dtype=q.dtype))
+    _, accelerations = descend(
+        lay.parent_slot, root, outward, (transform, motion.subspace, product, u_mats, d_invs, us)
+    )
+    return unpadded(tree, accelerations)
