@@ -51,7 +51,7 @@ class ForwardSensitivities(eqx.Module):
     differentiated and ``k ×`` (the saved outputs) is at most ``max_bytes``; otherwise the
     ``fallback`` adjoint's reverse pass. ``inner`` pushes the tangents (``diffrax.ForwardMode()``).
     The default ``max_tangents = 10`` is the measured crossover (k ≈ 11–14 for a double pendulum).
-    See `jaxlag._adjoint`.
+    How it chooses, and what each path costs: [Differentiation modes][differentiation-modes].
     """
 
     max_tangents: int = eqx.field(static=True, default=10)

@@ -82,8 +82,8 @@ class FailureCode(enum.IntEnum):
     ``jit``. That is why this is an ``int`` enumeration and not an ``eqx.Enumeration`` (as
     diffrax's ``RESULTS``): its members are plain integers that ``jnp.where`` and ``==`` take as
     they are. Each member's `message` is the static message raised from a compiled
-    program (`error_if_failed`); the eager message, with the numbers, is
-    built on the host (`jaxlag._diagnosis`).
+    program (`error_if_failed`); the eager message, with the numbers, is built on the host
+    (see [How errors surface][how-errors-surface-under-jit-vmap-and-gpu]).
 
     - ``COMPLETED`` (0): the run reached its end time (or a terminal event).
     - ``NONFINITE`` (1): the equations of motion became non-finite (NaN or inf) and a smaller

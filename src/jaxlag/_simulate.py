@@ -508,7 +508,8 @@ def simulate(
     [`ForwardSensitivities`][jaxlag.ForwardSensitivities], gives ``jax.grad`` by forward sensitivities when
     at most
     10 scalars are differentiated and by diffrax's ``RecursiveCheckpointAdjoint`` otherwise
-    (`jaxlag._adjoint`); for ``jax.jacfwd`` pass ``diffrax.ForwardMode()``.
+    (see [Differentiation modes][differentiation-modes]); for ``jax.jacfwd`` pass
+    ``diffrax.ForwardMode()``.
 
     Constrained systems:
 
@@ -518,12 +519,13 @@ def simulate(
     - ``baumgarte``: optional [`Baumgarte`][jaxlag.Baumgarte] feedback in the acceleration constraint.
     - ``throw``: on a run-time failure (non-finite equations of motion, a collapsing step size,
       ``max_steps``, ``max_segments``) raise [`SimulationError`][jaxlag.SimulationError] with the numbers
-      and a diagnosis (`jaxlag._errors`); inside a compiled program as ``checks.compiled``
+      and a diagnosis (see [Troubleshooting][a-run-that-cannot-be-completed-jlsimulationerror]);
+      inside a compiled program as ``checks.compiled``
       says (raise, or NaN outputs and the code). With ``False`` return the trajectory as the
       run left it, whose ``failure`` record says what happened (``traj.raise_if_failed()``
       raises later).
 
-    Events and unilateral constraints (see `jaxlag._events`):
+    Events and unilateral constraints (see [Events and segments][events-and-segments]):
 
     - ``events``: a [`Events`][jaxlag.Events] of [`Event`][jaxlag.Event] conditions (terminal or
       recorded) and the options of the segmented integration, e.g.

@@ -29,8 +29,8 @@ from ._mechanics.mass_solve import AbstractMassSolve, CheckedCholesky
 class System(eqx.Module):
     r"""A mechanical system: ``L(q, q̇, t)`` plus constraints and non-conservative forces.
 
-    Every function follows one convention (see `jaxlag._conventions`): state positionally,
-    ``t`` and ``args`` by keyword if declared.
+    Every function follows one convention (see [the calling convention][the-calling-convention]):
+    state positionally, ``t`` and ``args`` by keyword if declared.
 
     **Arguments:**
 

@@ -575,7 +575,7 @@ def simulate_variational(
     A fixed-step sibling of [`simulate`][jaxlag.simulate] for long horizons: the constraints
     ``f(q, t) = 0`` and ``J q̇ + ∂f/∂t = 0`` hold to the Newton tolerance at every step, the energy
     error of a conservative autonomous system stays bounded instead of drifting, and momenta of
-    symmetries are conserved to round-off. See `jaxlag._variational` for the equations.
+    symmetries are conserved to round-off. The equations: [Variational integration][variational-equations].
 
     **Arguments:**
 

@@ -70,7 +70,7 @@ class Coulomb(eqx.Module):
     "slip" if ``|λ_t| > μ λ_N`` there) and ``|λ_t| → μ λ_N`` ("slip", in the direction the
     net force drives: ``s = −sign λ_t``); [`EventLog`][jaxlag.EventLog] records them, and
     ``traj.friction_forces`` / ``traj.friction_modes`` give ``λ_t`` and the mode. The
-    equations are in `jaxlag._mechanics.friction`.
+    equations, with a worked example: [Friction: stick and slip][friction-stick-and-slip].
 
     Friction needs the mode, so it lives in [`simulate`][jaxlag.simulate] (and ``simulate_batch``
     with ``jl.Vmap()``); the state methods of [`System`][jaxlag.System] (``accelerations``,
