@@ -65,13 +65,16 @@ if __name__ == "__main__":
 
 # ----------------------------------------------------------------------------- ready models
 def render_models():
-    """One small picture per model of ``jaxlag.systems``, ``systems-<model>.png`` in the working
+    """One picture per model of ``jaxlag.systems``, ``systems-<model>.png`` in the working
     directory: the model at a representative state, drawn with ``jaxlag.plot``, and where a path
     tells more, a short simulation of it with the default parameters."""
+    import io
+
     import jax
     import jax.numpy as jnp
     import matplotlib.pyplot as plt
     import numpy as np
+    from PIL import Image  # matplotlib's own dependency
 
     import jaxlag as jl
     from jaxlag import coordinates, plot, rotations, systems
@@ -83,21 +86,26 @@ def render_models():
         return np.asarray(centre) + radius * (np.cos(s)[:, None] * e1 + np.sin(s)[:, None] * e2)
 
     def figure(three_d=False):
-        fig = plt.figure(figsize=(2.6, 2.4))
+        # Shown about 360 px wide on the page (a card of docs/api/systems.md): 480 px at 120 dpi.
+        fig = plt.figure(figsize=(4.0, 3.4))
         ax = fig.add_subplot(projection="3d" if three_d else None)
         if three_d:
             ax.set_box_aspect((1, 1, 1))
             ax.set(xticklabels=[], yticklabels=[], zticklabels=[])
         else:
             ax.set_aspect("equal")
-            ax.tick_params(labelsize=6)
+            ax.tick_params(labelsize=8)
         return fig, ax
 
     def save(fig, name, title):
-        fig.axes[0].set_title(title, fontsize=8)
+        fig.axes[0].set_title(title, fontsize=10)
         fig.tight_layout()
-        fig.savefig(f"systems-{name}.png", dpi=70)
+        buffer = io.BytesIO()
+        fig.savefig(buffer, dpi=120)
         plt.close(fig)
+        # Line drawings: a 64-colour palette looks the same at a third of the size.
+        picture = Image.open(buffer).convert("RGB").quantize(colors=64, dither=Image.Dither.NONE)
+        picture.save(f"systems-{name}.png", optimize=True)
 
     def run(system, q0, qd0, t1, n=80, args=None):
         return jl.simulate(
@@ -306,7 +314,7 @@ def render_models():
     p = systems.default_args(systems.whipple_bicycle)
     w, c, lam, rR, rF = p["w"], p["c"], p["lam"], p["rR"], p["rF"]
     fig, ax = figure()
-    fig.set_size_inches(3.2, 2.0)
+    fig.set_size_inches(4.0, 2.6)
     ax.plot([-0.5, w + 0.6], [0, 0], "k", lw=1)
     for x, r in ((0.0, rR), (w, rF)):
         ax.plot(*ring([x, r, 0], e[0], e[1], r)[:, :2].T, lw=1.5, color="tab:grey")

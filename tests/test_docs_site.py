@@ -4,7 +4,8 @@ fails here (the pages' code is executed by test_readme.py).
 
 The built pages are then read as a reader sees them (one build: the checks share it): no page
 points to a private module, every formula is MathML (nothing is left as TeX and no script is
-loaded from the network to typeset it).
+loaded from the network to typeset it), and the ready models are cards with pictures large
+enough to read.
 """
 
 import os
@@ -99,6 +100,27 @@ def _check_maths(site: pathlib.Path, pages: dict[str, _Page]) -> None:
     assert concepts.count('display="inline"') >= 20
 
 
+def _check_ready_models(site: pathlib.Path) -> None:
+    """docs/api/systems.md shows each model as a card (not a table column that breaks its name)
+    with a picture drawn large enough to read (docs/render_images.py) and still small on disk."""
+    import jaxlag.systems
+
+    helpers = {"bicycle_eigenvalues", "bicycle_upright_state", "default_args"}
+    models = set(jaxlag.systems.__all__) - helpers
+    html = (site / "api" / "systems" / "index.html").read_text(encoding="utf-8")
+    grid = html.split('<div class="grid cards models">', 1)[1].split("</div>", 1)[0]
+    cards = grid.split("<li>")[1:]
+    shown = {re.search(r'src="[^"]*systems-(\w+)\.png"', card)[1] for card in cards}
+    assert shown == models and len(cards) == len(models), sorted(shown ^ models)
+    for card in cards:
+        name = re.search(r'src="[^"]*systems-(\w+)\.png"', card)[1]
+        assert f"<code>{name}</code>" in card.split("<img", 1)[0], name  # the name, then the picture
+    for name in models:
+        png = (ROOT / "docs" / "images" / f"systems-{name}.png").read_bytes()
+        width = int.from_bytes(png[16:20], "big")  # the IHDR chunk
+        assert width >= 400 and len(png) < 40_000, (name, width, len(png))
+
+
 def test_mkdocs_build_strict(tmp_path):
     env = {**os.environ, "NO_MKDOCS_2_WARNING": "1"}
     out = subprocess.run(
@@ -126,6 +148,7 @@ def test_mkdocs_build_strict(tmp_path):
     pages = _read(tmp_path)
     _check_no_private_modules(pages)
     _check_maths(tmp_path, pages)
+    _check_ready_models(tmp_path)
 
 
 def test_formula_that_cannot_be_converted_fails_the_build():
