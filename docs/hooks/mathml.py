@@ -85,5 +85,6 @@ def convert_page(content: str, where: str) -> str:
     return content
 
 
-def on_page_content(html: str, page, **kwargs) -> str:
-    return convert_page(html, page.file.src_uri)
+def on_page_content(content: str, page, **kwargs) -> str:
+    """MkDocs' event: a page's HTML, before the theme wraps it."""
+    return convert_page(content, page.file.src_uri)
