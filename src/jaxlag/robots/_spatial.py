@@ -49,7 +49,7 @@ def axis_angle_rotation(axis: Float[Array, "*b 3"], angle: Float[Array, "*b"]) -
     k = skew(axis)
     s = jnp.sin(angle)[..., None, None]
     c = jnp.cos(angle)[..., None, None]
-    return jnp.eye(3, dtype=axis.dtype) + s * k + (1 - c) * (k @ k)
+    return jnp.broadcast_to(jnp.eye(3, dtype=axis.dtype), k.shape) + s * k + (1 - c) * (k @ k)
 
 
 def motion_transform(
@@ -99,5 +99,5 @@ def spatial_inertia(
     m = mass[..., None, None]
     ct = jnp.swapaxes(c, -1, -2)
     top = jnp.concatenate([inertia + m * (c @ ct), m * c], axis=-1)
-    bottom = jnp.concatenate([m * ct, m * jnp.eye(3, dtype=com.dtype)], axis=-1)
+    bottom = jnp.concatenate([m * ct, m * jnp.broadcast_to(jnp.eye(3, dtype=com.dtype), c.shape)], axis=-1)
     return jnp.concatenate([top, bottom], axis=-2)

@@ -1,0 +1,304 @@
+"""jaxlag.robots against MuJoCo: M(q), the bias forces and q̈ of imported MJCF and URDF models.
+
+Every model is compiled by MuJoCo (the test extra installs it); at random states the tree's
+mass matrix, bias forces and accelerations agree with ``mj_fullM``, ``qfrc_bias`` and ``qacc``
+of ``mj_forward`` to 1e-10 relative. jaxlag's coordinates are MuJoCo's ``qpos``/``qvel``: a ball
+joint's velocity is the angular velocity in the child's frame, a free joint's the world velocity
+of the body's origin then the angular velocity in the body's frame (checked below against
+``mj_integratePos`` and ``mj_objectVelocity``), so the comparison maps each entry to itself.
+"""
+
+import sys
+
+import equinox as eqx
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxlag.robots as jlr
+
+mujoco = pytest.importorskip("mujoco")
+
+_NO_CONTACT = '<option><flag contact="disable"/></option>'
+
+DOUBLE_PENDULUM = f"""<mujoco>{_NO_CONTACT}<worldbody>
+  <body name="upper"><joint name="shoulder" type="hinge" axis="0 1 0" damping="0.3" armature="0.02"/>
+    <geom type="capsule" fromto="0 0 0 0 0 -1" size="0.05" mass="1"/>
+    <body name="lower" pos="0 0 -1"><joint name="elbow" type="hinge" axis="0 1 0" damping="0.1"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.8" size="0.04" mass="0.7"/></body></body>
+</worldbody></mujoco>"""
+
+ARM = f"""<mujoco>{_NO_CONTACT}<default><joint damping="0.5" armature="0.1"/></default><worldbody>
+  <body name="base" pos="0 0 0.3" euler="0 0 20"><geom type="cylinder" size="0.1 0.05"/>
+  <body name="l1" pos="0 0 0.1"><joint name="j1" axis="0 0 1"/>
+    <geom type="capsule" fromto="0 0 0 0 0 0.3" size="0.05"/>
+  <body name="l2" pos="0 0 0.3" quat="0.9 0.1 0.3 -0.2"><joint name="j2" axis="0 1 0" pos="0 0 0.02"/>
+    <geom type="box" size="0.04 0.05 0.2" pos="0.01 0.02 0.2"/>
+  <body name="l3" pos="0 0 0.4"><joint name="j3" axis="0 0 1" armature="0.3"/>
+    <geom type="capsule" fromto="0 0 0 0.05 0 0.3" size="0.04"/>
+  <body name="l4" pos="0 0 0.3" euler="10 -20 5"><joint name="j4" axis="0.3 1 0.1" damping="1.2"/>
+    <geom type="ellipsoid" size="0.05 0.08 0.15" pos="0 0 0.15" euler="5 10 15"/>
+  <body name="l5" pos="0.02 0 0.3"><joint name="j5" axis="0 0 1"/>
+    <geom type="capsule" fromto="0 0 0 0 0 0.2" size="0.03"/>
+  <body name="l6" pos="0 0 0.2"><joint name="j6" axis="0 1 0" pos="0.01 0.01 0"/>
+    <geom type="box" size="0.03 0.03 0.06" pos="0 0 0.06"/>
+  <body name="l7" pos="0 0 0.12"><joint name="j7" axis="1 0 0"/>
+    <geom type="cylinder" size="0.05 0.01" pos="0 0.02 0.01"/>
+  </body></body></body></body></body></body></body></body>
+</worldbody>
+<actuator><motor joint="j1" gear="2"/><motor joint="j4"/><motor joint="j7" gear="0.5"/></actuator>
+</mujoco>"""
+
+FLOATING_BASE = f"""<mujoco>{_NO_CONTACT}<option gravity="0.5 -1 -9.81"/><worldbody>
+  <body name="torso" pos="0.1 0.2 1.0" quat="0.8 0.2 0.1 0.4"><freejoint/>
+    <geom type="box" size="0.2 0.1 0.05" pos="0.03 -0.02 0.01"/>
+    <geom type="sphere" size="0.05" pos="0.2 0.1 0"/>
+    <body name="leg1" pos="0.2 0.1 -0.05"><joint type="hinge" axis="0 1 0" damping="0.2" armature="0.01"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.03"/>
+      <body name="shin1" pos="0 0 -0.3"><joint type="hinge" axis="1 0 0"/>
+        <geom type="capsule" fromto="0 0 0 0.1 0 -0.3" size="0.03"/></body></body>
+    <body name="leg2" pos="-0.2 -0.1 -0.05"><joint type="ball" pos="0 0 0.02" damping="0.1"/>
+      <geom type="capsule" fromto="0 0 0 0 0.1 -0.3" size="0.03"/></body>
+  </body>
+</worldbody></mujoco>"""
+
+BALLS = f"""<mujoco>{_NO_CONTACT}<worldbody>
+  <body name="a" pos="0 0 2"><joint type="ball" damping="0.2" armature="0.05"/>
+    <geom type="capsule" fromto="0 0 0 0.1 0 -0.5" size="0.05"/>
+    <body name="b" pos="0.1 0 -0.5" euler="0 30 0"><joint type="ball" pos="0.01 0.02 0.03"/>
+      <geom type="box" size="0.05 0.1 0.2" pos="0 0.02 -0.2"/>
+      <body name="c" pos="0 0 -0.4"><joint type="hinge" axis="1 1 0"/>
+        <geom type="ellipsoid" size="0.1 0.05 0.2" pos="0 0 -0.2" euler="10 0 40"/></body></body></body>
+</worldbody></mujoco>"""
+
+SLIDES = f"""<mujoco>{_NO_CONTACT}<option gravity="0 0 -9.81"/><worldbody>
+  <body name="cart" pos="0 0 0.5"><joint name="rail" type="slide" axis="1 0 0" damping="0.4" armature="0.2"/>
+    <geom type="box" size="0.2 0.1 0.05"/>
+    <body name="pole"><joint type="hinge" axis="0 1 0" pos="0 0 0.05"/>
+      <joint type="slide" axis="0 0 1" ref="0.1" damping="0.3"/>
+      <geom type="capsule" fromto="0 0 0 0 0.05 0.6" size="0.03"/>
+      <body name="tip" pos="0 0 0.6"><joint type="slide" axis="0.3 0.4 1"/>
+        <joint type="hinge" axis="1 0 0" ref="0.2" armature="0.01"/>
+        <geom type="sphere" size="0.06" pos="0.05 0 0"/></body></body></body>
+</worldbody><actuator><motor joint="rail" gear="3"/></actuator></mujoco>"""
+
+URDF = """<robot name="urdf_arm">
+  <link name="base"><inertial><mass value="2"/>
+    <inertia ixx="0.1" iyy="0.1" izz="0.1" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <link name="upper"><inertial><origin xyz="0.02 0 0.2" rpy="0.1 0.2 0.3"/><mass value="1.2"/>
+    <inertia ixx="0.02" ixy="0.001" ixz="0.002" iyy="0.025" iyz="-0.001" izz="0.012"/></inertial></link>
+  <link name="fore"><inertial><origin xyz="0 0.01 0.15"/><mass value="0.8"/>
+    <inertia ixx="0.01" ixy="0" ixz="0" iyy="0.012" iyz="0" izz="0.005"/></inertial></link>
+  <link name="hand"><inertial><origin xyz="0 0 0.05"/><mass value="0.3"/>
+    <inertia ixx="0.001" ixy="0" ixz="0" iyy="0.0012" iyz="0" izz="0.0005"/></inertial></link>
+  <joint name="shoulder" type="revolute"><parent link="base"/><child link="upper"/>
+    <origin xyz="0 0 0.1" rpy="0 0 0.3"/><axis xyz="0 1 0"/>
+    <limit lower="-3" upper="3" effort="10" velocity="5"/><dynamics damping="0.2"/></joint>
+  <joint name="elbow" type="continuous"><parent link="upper"/><child link="fore"/>
+    <origin xyz="0 0 0.4" rpy="0.2 0 0"/><axis xyz="1 0 0"/></joint>
+  <joint name="wrist" type="prismatic"><parent link="fore"/><child link="hand"/>
+    <origin xyz="0 0 0.3"/><axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="10" velocity="5"/></joint>
+</robot>"""
+
+MODELS = {
+    "double_pendulum": DOUBLE_PENDULUM,
+    "arm_7dof": ARM,
+    "floating_base": FLOATING_BASE,
+    "ball_joints": BALLS,
+    "slide_joints": SLIDES,
+    "urdf_arm": URDF,
+}
+
+
+def _full_mass_matrix(model, data) -> np.ndarray:
+    out = np.zeros((model.nv, model.nv))
+    try:  # MuJoCo 4: mj_fullM(m, d, dst)
+        mujoco.mj_fullM(model, data, out)
+    except TypeError:  # MuJoCo 3: mj_fullM(m, dst, qM)
+        mujoco.mj_fullM(model, out, data.qM)
+    return out
+
+
+def _random_states(model, rng, count):
+    """``(q, v)`` inside every joint's range; quaternions of unit length."""
+    qs, vs = [], []
+    for _ in range(count):
+        q = np.array(model.qpos0) + rng.uniform(-0.8, 0.8, model.nq)
+        for joint in range(model.njnt):
+            adr = model.jnt_qposadr[joint]
+            kind = model.jnt_type[joint]
+            if kind == mujoco.mjtJoint.mjJNT_FREE:
+                q[adr + 3 : adr + 7] /= np.linalg.norm(q[adr + 3 : adr + 7])
+            elif kind == mujoco.mjtJoint.mjJNT_BALL:
+                q[adr : adr + 4] = rng.normal(size=4)
+                q[adr : adr + 4] /= np.linalg.norm(q[adr : adr + 4])
+        qs.append(q)
+        vs.append(rng.normal(size=model.nv) * 1.5)
+    return np.array(qs), np.array(vs)
+
+
+def _mujoco_reference(model, qs, vs, controls):
+    data = mujoco.MjData(model)
+    out = {"M": [], "bias": [], "qacc": []}
+    for q, v, u in zip(qs, vs, controls):
+        data.qpos[:] = q
+        data.qvel[:] = v
+        data.ctrl[:] = u
+        mujoco.mj_forward(model, data)
+        assert data.nefc == 0  # no contact, no limit: qacc is M⁻¹(τ + qfrc_passive − qfrc_bias)
+        out["M"].append(_full_mass_matrix(model, data))
+        out["bias"].append(np.array(data.qfrc_bias))
+        out["qacc"].append(np.array(data.qacc))
+    return {key: np.array(value) for key, value in out.items()}
+
+
+@eqx.filter_jit
+def _quantities(tree, qs, vs, controls):
+    def one(q, v, u):
+        tau = tree.actuation @ u
+        mass = jlr.mass_matrix(tree, q)
+        bias = jlr.bias_forces(tree, q, v)
+        return {
+            "M": mass,
+            "bias": bias,
+            "qacc": jlr.forward_dynamics(tree, q, v, tau),
+            "qacc_dense": jnp.linalg.solve(mass, tau - tree.damping * v - bias),
+            "inverse": jlr.inverse_dynamics(tree, q, v, jlr.forward_dynamics(tree, q, v, tau)) - tau,
+        }
+
+    return jax.vmap(one)(qs, vs, controls)
+
+
+def _relative(a, b) -> float:
+    return float(np.max(np.abs(np.asarray(a) - b)) / max(np.max(np.abs(b)), 1e-300))
+
+
+AGREEMENT: dict[tuple[str, str], float] = {}
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_agrees_with_mujoco(name):
+    model = mujoco.MjModel.from_xml_string(MODELS[name])
+    tree = jlr.load(MODELS[name])
+    assert (tree.nq, tree.nv) == (model.nq, model.nv)
+    rng = np.random.default_rng(len(name))
+    qs, vs = _random_states(model, rng, 4)
+    controls = rng.normal(size=(4, model.nu))
+    reference = _mujoco_reference(model, qs, vs, controls)
+    ours = _quantities(tree, jnp.asarray(qs), jnp.asarray(vs), jnp.asarray(controls))
+    for key, reference_key in (("M", "M"), ("bias", "bias"), ("qacc", "qacc"), ("qacc_dense", "qacc")):
+        error = _relative(ours[key], reference[reference_key])
+        AGREEMENT[(name, key)] = error
+        assert error < 1e-10, (name, key, error)
+    # inverse_dynamics undoes forward_dynamics (armature and damping included)
+    assert np.max(np.abs(np.asarray(ours["inverse"]))) < 1e-10 * np.max(np.abs(reference["bias"]))
+
+
+def test_forward_kinematics_matches_mujoco():
+    model = mujoco.MjModel.from_xml_string(FLOATING_BASE)
+    tree = jlr.load(FLOATING_BASE)
+    data = mujoco.MjData(model)
+    qs, _ = _random_states(model, np.random.default_rng(3), 1)
+    data.qpos[:] = qs[0]
+    mujoco.mj_kinematics(model, data)
+    poses = jlr.forward_kinematics(tree, qs[0])
+    # each body is the last of its links
+    last = [
+        tree.names.index(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) or f"body{b}")
+        for b in range(1, model.nbody)
+    ]
+    np.testing.assert_allclose(np.asarray(poses.translation)[last], data.xpos[1:], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(poses.rotation)[last], data.xmat[1:].reshape(-1, 3, 3), atol=1e-12)
+
+
+def test_velocity_conventions_are_mujocos():
+    """Ball and free joints: ``q̇`` from ``v`` as MuJoCo integrates it, and the free joint's
+    velocity is (world velocity of the origin, angular velocity in the body's frame)."""
+    model = mujoco.MjModel.from_xml_string(FLOATING_BASE)
+    tree = jlr.load(FLOATING_BASE)
+    q, v = (x[0] for x in _random_states(model, np.random.default_rng(5), 1))
+    rate = np.asarray(jlr.configuration_rate(tree, q, v))
+    for dt in (1e-4, 5e-5):
+        stepped = q.copy()
+        mujoco.mj_integratePos(model, stepped, v, dt)
+        np.testing.assert_allclose((stepped - q) / dt, rate, atol=20 * dt)
+    data = mujoco.MjData(model)
+    data.qpos[:] = q
+    data.qvel[:] = v
+    mujoco.mj_forward(model, data)
+    torso = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "torso")
+    local = np.zeros(6)  # (ω, v) at the body's origin, in the body's frame
+    mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_XBODY, torso, local, 1)
+    rotation = data.xmat[torso].reshape(3, 3)
+    np.testing.assert_allclose(v[3:6], local[:3], atol=1e-12)
+    np.testing.assert_allclose(v[:3], rotation @ local[3:], atol=1e-12)
+
+
+def test_jit_vmap_grad():
+    """Derivatives through the recursions agree with central differences: with respect to the
+    configuration and to the inertial parameters (masses, centres of mass, inertias)."""
+    tree = jlr.load(FLOATING_BASE)
+    model = mujoco.MjModel.from_xml_string(FLOATING_BASE)
+    q, v = (jnp.asarray(x[0]) for x in _random_states(model, np.random.default_rng(7), 1))
+    tau = jnp.linspace(-1.0, 1.0, tree.nv)
+
+    def loss(params, q):
+        mass, com, inertia = params
+        t = eqx.tree_at(lambda t: (t.mass, t.com, t.inertia), tree, (mass, com, inertia))
+        return jnp.sum(jnp.sin(jlr.forward_dynamics(t, q, v, tau))) + jnp.sum(jlr.mass_matrix(t, q) ** 2)
+
+    params = (tree.mass, tree.com, tree.inertia)
+    grads = jax.jit(jax.grad(loss, argnums=(0, 1)))(params, q)
+    rng = np.random.default_rng(0)
+    flat, unravel = jax.flatten_util.ravel_pytree((params, q))
+    gflat, _ = jax.flatten_util.ravel_pytree(grads)
+    value = jax.jit(lambda x: loss(*unravel(x)))
+    for _ in range(3):
+        # relative steps: the links' inertias (~1e-4) set the scale of the acceleration's curvature
+        direction = jnp.asarray(rng.normal(size=flat.shape)) * (jnp.abs(flat) + 1e-3)
+        h = 1e-7
+        fd = (value(flat + h * direction) - value(flat - h * direction)) / (2 * h)
+        np.testing.assert_allclose(float(gflat @ direction), float(fd), rtol=1e-5)
+    # vmap over parameters: a batch of masses
+    masses = tree.mass[None, :] * jnp.array([[1.0], [1.5]])
+    batched = jax.vmap(lambda m: jlr.forward_dynamics(eqx.tree_at(lambda t: t.mass, tree, m), q, v, tau))(
+        masses
+    )
+    assert batched.shape == (2, tree.nv)
+    np.testing.assert_allclose(batched[0], jlr.forward_dynamics(tree, q, v, tau), rtol=1e-12)
+
+
+def test_chain_compiles_once_per_structure():
+    """A 60-link chain: the sweeps are scans, so the program does not grow with the links."""
+    links = 60
+    body = (
+        '<body pos="0 0 -0.1"><joint type="hinge" axis="0 1 0" damping="0.1"/>'
+        '<geom size="0.02" pos="0 0 -0.05"/>'
+    )
+    xml = f"<mujoco><worldbody>{body * links}{'</body>' * links}</worldbody></mujoco>"
+    tree = jlr.load(xml)
+    q = jnp.linspace(0.0, 1.0, links)
+    v = jnp.linspace(1.0, -1.0, links)
+    acceleration = jax.jit(jlr.forward_dynamics)(tree, q, v)
+    mass = jax.jit(jlr.mass_matrix)(tree, q)
+    bias = jax.jit(jlr.bias_forces)(tree, q, v)
+    np.testing.assert_allclose(mass @ acceleration, -bias - tree.damping * v, rtol=1e-9, atol=1e-9)
+    hlo = jax.jit(jlr.forward_dynamics).lower(tree, q, v).as_text()
+    assert len(hlo.splitlines()) < 1500
+
+
+def test_loading_needs_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "mujoco", None)
+    with pytest.raises(ImportError, match=r"jaxlag\[robots\]"):
+        jlr.load(DOUBLE_PENDULUM)
+
+
+def test_refuses_what_it_does_not_model():
+    friction = DOUBLE_PENDULUM.replace('damping="0.1"', 'frictionloss="0.2"')
+    with pytest.raises(ValueError, match="frictionloss"):
+        jlr.load(friction)
+    servo = ARM.replace('<motor joint="j4"/>', '<position joint="j4" kp="10"/>')
+    with pytest.raises(ValueError, match="motors"):
+        jlr.load(servo)
