@@ -105,9 +105,11 @@ class _BackendJit:
 
     Two wrappers are kept (tuned and plain); which one runs is chosen at each call: tuned when
     the call compiles its own program on the CPU, plain when it is traced into an enclosing
-    ``jit`` (JAX accepts options only on top-level programs). Both are created lazily, one pair
-    per choice of the compiled checks in force (`jaxlag._errors.on_failure`), which the
-    function is traced under.
+    ``jit`` (JAX accepts options only on top-level programs). The tuned one calls the plain one,
+    so the function is traced once for both: a trace nested in ``jax.eval_shape`` or
+    ``jax.make_jaxpr`` (which takes the plain one) serves the top-level call. Both are created
+    lazily, one pair per choice of the compiled checks in force (`jaxlag._errors.on_failure`),
+    which the function is traced under.
     """
 
     def __init__(self, fn, jitkwargs):
@@ -118,15 +120,28 @@ class _BackendJit:
 
     def _wrapper(self) -> Any:
         options = compiler_options() if _compiled_at_top_level() else {}
-        tuned = bool(options)
         # The compiled checks' choice in force (jaxlag._errors.on_failure) is part of the key:
         # a program traced under NaNOnFailure never serves a call under RaiseOnFailure.
         choice = current_on_failure()
-        wrapper = self._wrappers.get((tuned, choice))
+        if not options:
+            return self._plain(choice)
+        wrapper = self._wrappers.get((True, choice))
         if wrapper is None:
+            # The tuned program is a call of the plain one, whose trace JAX caches (per jit and
+            # options): a trace of the plain one nested in another (``jax.eval_shape`` of the
+            # output shapes, a ``make_jaxpr``) serves the top-level call, and the reverse. XLA
+            # inlines the call: the compiled program is the same.
+            plain = self._plain(choice)
             kwargs = dict(self._jitkwargs)
-            if tuned:
-                kwargs["compiler_options"] = {**options, **kwargs.get("compiler_options", {})}
+            kwargs["compiler_options"] = {**options, **kwargs.get("compiler_options", {})}
+            wrapper = eqx.filter_jit(functools.wraps(self._fn)(lambda *a, **k: plain(*a, **k)), **kwargs)
+            self._wrappers[(True, choice)] = wrapper
+        return wrapper
+
+    def _plain(self, choice) -> Any:
+        """The wrapper without options, tracing the function under ``choice``."""
+        wrapper = self._wrappers.get((False, choice))
+        if wrapper is None:
             fn = self._fn
 
             @functools.wraps(fn)
@@ -134,7 +149,7 @@ class _BackendJit:
                 with on_failure(choice):
                     return fn(*args, **kwargs)
 
-            wrapper = self._wrappers[(tuned, choice)] = eqx.filter_jit(traced, **kwargs)
+            wrapper = self._wrappers[(False, choice)] = eqx.filter_jit(traced, **self._jitkwargs)
         return wrapper
 
     def __call__(self, *args, **kwargs):
