@@ -36,6 +36,7 @@ class _Page(HTMLParser):
         self.text: list[str] = []
         self.prose: list[str] = []
         self.scripts: list[str] = []
+        self.stylesheets: list[str] = []
         self._hidden = 0
         self._code = 0
 
@@ -43,6 +44,8 @@ class _Page(HTMLParser):
         attributes = dict(attrs)
         if tag == "script" and attributes.get("src"):
             self.scripts.append(attributes["src"] or "")
+        if tag == "link" and attributes.get("rel") == "stylesheet":
+            self.stylesheets.append(attributes.get("href") or "")
         if tag in ("script", "style"):
             self._hidden += 1
         elif tag in ("code", "pre"):
@@ -91,6 +94,10 @@ def _check_maths(site: pathlib.Path, pages: dict[str, _Page]) -> None:
     assert not tex, f"TeX left in the rendered text: {tex}"
     remote = {name: page.scripts for name, page in pages.items() if any("//" in s for s in page.scripts)}
     assert not remote, f"scripts loaded from the network: {remote}"
+    remote = {
+        name: page.stylesheets for name, page in pages.items() if any("//" in s for s in page.stylesheets)
+    }
+    assert not remote, f"stylesheets (fonts) loaded from the network: {remote}"
     for path in site.rglob("*.html"):
         html = path.read_text(encoding="utf-8")
         assert "mathjax" not in html.lower(), path
