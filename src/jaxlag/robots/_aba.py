@@ -3,9 +3,9 @@ r"""The articulated-body algorithm: forward dynamics ``v̇ = M⁻¹(τ − dampi
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._kinematics import as_state, link_velocities
+from ._kinematics import as_state, world_motion
 from ._recursion import ascend, descend
-from ._spatial import force_cross, motion_cross, spatial_inertia
+from ._spatial import force_cross, motion_cross, motion_transform, spatial_inertia
 from ._tree import KinematicTree, joint_bias, joint_motion, layout, padded, unpadded
 
 
@@ -34,7 +34,11 @@ def forward_dynamics(
     tau = jnp.zeros_like(v) if force is None else as_state(tree, force)
     lay = layout(tree)
     motion = joint_motion(tree, q)
-    transform, joint_velocity, velocities = link_velocities(tree, motion, v)
+    transform = motion_transform(motion.rotation, motion.translation)
+    joint_velocity = jnp.einsum("lij,lj->li", motion.subspace, padded(tree, v))
+    # the outward velocity sweep as a sum over ancestors in world coordinates, then in each link's frame
+    world = world_motion(tree, motion, v)
+    velocities = jnp.einsum("lij,lj->li", world.to_link, world.velocity)
     product = joint_bias(tree, q, v) + jnp.einsum("lij,lj->li", motion_cross(velocities), joint_velocity)
     inertia = spatial_inertia(tree.mass, tree.com, tree.inertia)
     bias = jnp.einsum("lij,lj->li", force_cross(velocities), jnp.einsum("lij,lj->li", inertia, velocities))

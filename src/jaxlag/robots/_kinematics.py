@@ -5,8 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._recursion import descend
-from ._spatial import motion_transform
+from ._spatial import inverse_motion_transform, motion_transform
 from ._tree import JointMotion, KinematicTree, joint_motion, layout, padded
 
 
@@ -22,32 +21,43 @@ def as_state(tree: KinematicTree, x) -> Array:
 
 
 def world_poses(tree: KinematicTree, motion: JointMotion) -> LinkPoses:
+    """Each link's pose in the world, by pointer jumping: after step ``k`` every row holds its
+    pose relative to its ancestor ``2ᵏ`` levels up (composed as ``R_a R``, ``p_a + R_a p``), so
+    ``⌈log₂ depth⌉`` vectorized steps replace a sweep down the tree."""
     dtype = motion.rotation.dtype
-    root = (jnp.eye(3, dtype=dtype), jnp.zeros(3, dtype=dtype))
+    rotation = jnp.concatenate([motion.rotation, jnp.eye(3, dtype=dtype)[None]])
+    translation = jnp.concatenate([motion.translation, jnp.zeros((1, 3), dtype=dtype)])
+    for ancestor in layout(tree).jumps:
+        outer_rotation = rotation[ancestor]
+        translation = translation[ancestor] + jnp.einsum("lij,lj->li", outer_rotation, translation)
+        rotation = outer_rotation @ rotation
+    return LinkPoses(rotation=rotation[:-1], translation=translation[:-1])
 
-    def step(parent, x):
-        rp, pp = parent
-        r, p = x
-        return rp @ r, pp + rp @ p
 
-    rotation, translation = descend(
-        layout(tree).parent_slot, root, step, (motion.rotation, motion.translation)
+class WorldMotion(eqx.Module):
+    """A tree's motion in world coordinates (spatial vectors at the world's origin)."""
+
+    poses: LinkPoses
+    to_link: Float[Array, "links 6 6"]  # motion vectors from the world to each link's frame
+    subspace: Float[Array, "links 6 6"]  # each joint's motion subspace, world frame
+    joint_velocity: Float[Array, "links 6"]  # S v, world frame
+    velocity: Float[Array, "links 6"]  # each link's spatial velocity, world frame
+
+
+def world_motion(tree: KinematicTree, motion: JointMotion, v: Array) -> WorldMotion:
+    r"""Velocities in world coordinates, where a link's velocity is the sum of its ancestors'
+    joint velocities: ``v⁰_i = Σ_{j ⪯ i} X⁰_j S_j v_j`` (one masked product, no sweep)."""
+    poses = world_poses(tree, motion)
+    subspace = inverse_motion_transform(poses.rotation, poses.translation) @ motion.subspace
+    joint_velocity = jnp.einsum("lij,lj->li", subspace, padded(tree, v))
+    ancestors = jnp.asarray(layout(tree).subtree.T, dtype=v.dtype)  # [i, j]: j ⪯ i
+    return WorldMotion(
+        poses=poses,
+        to_link=motion_transform(poses.rotation, poses.translation),
+        subspace=subspace,
+        joint_velocity=joint_velocity,
+        velocity=ancestors @ joint_velocity,
     )
-    return LinkPoses(rotation=rotation, translation=translation)
-
-
-def link_velocities(tree: KinematicTree, motion: JointMotion, v: Array) -> tuple[Array, Array, Array]:
-    """``(X, vJ, v_link)``: the parent-to-link motion transforms, the joints' velocities and the
-    links' spatial velocities ``v_i = X_i v_{parent} + S_i v``, in the links' frames."""
-    transform = motion_transform(motion.rotation, motion.translation)
-    joint_velocity = jnp.einsum("lij,lj->li", motion.subspace, padded(tree, v))
-    velocities = descend(
-        layout(tree).parent_slot,
-        jnp.zeros(6, dtype=v.dtype),
-        lambda parent, x: x[0] @ parent + x[1],
-        (transform, joint_velocity),
-    )
-    return transform, joint_velocity, velocities
 
 
 def forward_kinematics(tree: KinematicTree, q: Float[ArrayLike, " nq"]) -> LinkPoses:

@@ -144,6 +144,7 @@ class Layout(eqx.Module):
     dof_column: np.ndarray  # (nv,) its column in the link's padded motion subspace
     subtree: np.ndarray  # (links, links) subtree[i, j]: j is i or a descendant of i
     dof_ancestor: np.ndarray  # (nv, nv) [d, e]: the link of d is the link of e or an ancestor of it
+    jumps: tuple  # pointer jumping: the ancestor 1, 2, 4, ... levels up of each row (world = links)
     groups: dict  # joint type -> array of its links
     order: np.ndarray  # the permutation from links grouped by type back to link order
 
@@ -166,6 +167,17 @@ def _layout(parents: tuple[int, ...], joint_types: tuple[str, ...], v_addresses:
         while i >= 0:
             subtree[i, j] = True
             i = parents[i]
+    # ancestors 2^k levels up, for each of the ceil(log2(depth)) steps that compose a path to the root
+    ancestor = np.array([p if p >= 0 else links for p in parents] + [links], dtype=np.int32)
+    depth = np.zeros(links, dtype=np.int64)
+    for i, parent in enumerate(parents):
+        depth[i] = 1 + (depth[parent] if parent >= 0 else 0)
+    jumps = []
+    reach = 1
+    while reach < (depth.max() if links else 0):
+        jumps.append(ancestor)
+        ancestor = ancestor[ancestor]
+        reach *= 2
     groups = {
         kind: np.array([i for i in range(links) if joint_types[i] == kind], dtype=np.int32)
         for kind in JOINT_TYPES
@@ -179,6 +191,7 @@ def _layout(parents: tuple[int, ...], joint_types: tuple[str, ...], v_addresses:
         dof_link=dof_link,
         dof_column=dof_column,
         subtree=subtree,
+        jumps=tuple(jumps),
         dof_ancestor=subtree[dof_link][:, dof_link],
         groups=groups,
         order=order,
