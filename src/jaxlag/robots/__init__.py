@@ -27,6 +27,7 @@ from ._crba import mass_matrix as mass_matrix
 from ._kinematics import LinkPoses as LinkPoses
 from ._kinematics import configuration_rate as configuration_rate
 from ._kinematics import forward_kinematics as forward_kinematics
+from ._lagrangian import system as system
 from ._load import from_mujoco as from_mujoco
 from ._load import load as load
 from ._rnea import bias_forces as bias_forces
@@ -44,4 +45,5 @@ __all__ = [
     "inverse_dynamics",
     "load",
     "mass_matrix",
+    "system",
 ]

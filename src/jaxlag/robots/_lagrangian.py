@@ -1,0 +1,134 @@
+r"""A kinematic tree as a [`jaxlag.System`][jaxlag.System]: its Lagrangian ``L = T − V``.
+
+jaxlag's coordinates and velocities have one length, ``n``: here ``q`` is the tree's
+configuration (MuJoCo's ``qpos``, ``n = nq``) and ``q̇`` its time derivative. A ball or free
+joint's quaternion ``Q`` then has four rates ``Q̇``, from which ``ω = 2 vec(Q̄ ⊗ Q̇)`` (in the
+link's frame), and a holonomic constraint ``|Q|² − 1 = 0`` keeps it of unit length (as
+jaxlag's own quaternion bodies do). The kinetic energy ``½ (Q·Q̇)²``, which vanishes on
+that constraint's motions, is added so that ``M = ∂²L/∂q̇²`` stays positive definite in the
+direction the constraint removes; it changes the multiplier, not the motion.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._system import System
+from ._kinematics import world_motion
+from ._spatial import spatial_inertia
+from ._tree import KinematicTree, joint_motion, layout
+
+
+def _quaternion_blocks(tree: KinematicTree) -> np.ndarray:
+    """The ``q`` indices of every ball's and free joint's quaternion, shape ``(k, 4)``."""
+    starts = [
+        tree.q_addresses[i] + (3 if kind == "free" else 0)
+        for i, kind in enumerate(tree.joint_types)
+        if kind in ("ball", "free")
+    ]
+    return np.asarray(starts, dtype=np.int32).reshape(-1, 1) + np.arange(4, dtype=np.int32)
+
+
+def tree_velocity(tree: KinematicTree, q: Array, qd: Array) -> Array:
+    r"""``v`` from ``(q, q̇)``: ``θ̇`` for hinges and slides, ``ω = 2 vec(Q̄ ⊗ Q̇) = 2 (w ẋ − ẇ x − x × ẋ)``
+    for quaternions ``Q = (w, x)``, and the world velocity ``ṗ`` of a free joint's origin."""
+    lay = layout(tree)
+    qadr = np.asarray(tree.q_addresses, dtype=np.int32)
+    vadr = np.asarray(tree.v_addresses, dtype=np.int32)
+    v = jnp.zeros(tree.nv, dtype=q.dtype)
+    scalar = np.concatenate([lay.groups["hinge"], lay.groups["slide"]])
+    if scalar.size:
+        v = v.at[vadr[scalar]].set(qd[qadr[scalar]])
+    for kind, offset in (("ball", 0), ("free", 3)):
+        links = lay.groups[kind]
+        if links.size == 0:
+            continue
+        block = qadr[links][:, None] + offset + np.arange(4)
+        quaternion, rate = q[block], qd[block]
+        w, x = quaternion[:, :1], quaternion[:, 1:]
+        wd, xd = rate[:, :1], rate[:, 1:]
+        omega = 2 * (w * xd - wd * x - jnp.cross(x, xd))
+        v = v.at[vadr[links][:, None] + offset + np.arange(3)].set(omega)
+        if kind == "free":
+            v = v.at[vadr[links][:, None] + np.arange(3)].set(qd[qadr[links][:, None] + np.arange(3)])
+    return v
+
+
+def kinetic_energy(tree: KinematicTree, q: Array, v: Array) -> Array:
+    r"""``T = ½ Σ_i v_iᵀ I_i v_i + ½ Σ_d armature_d v_d²`` (link velocities and inertias in world
+    coordinates), which equals ``½ vᵀ M(q) v``."""
+    motion = joint_motion(tree, q)
+    world = world_motion(tree, motion, v)
+    inertia = (
+        jnp.swapaxes(world.to_link, -1, -2)
+        @ spatial_inertia(tree.mass, tree.com, tree.inertia)
+        @ world.to_link
+    )
+    return 0.5 * jnp.einsum("li,lij,lj->", world.velocity, inertia, world.velocity) + 0.5 * jnp.sum(
+        tree.armature * v**2
+    )
+
+
+def potential_energy(tree: KinematicTree, q: Array) -> Array:
+    r"""``V = −Σ_i m_i g · c_i``, with ``c_i`` each link's centre of mass in the world."""
+    motion = joint_motion(tree, q)
+    world = world_motion(tree, motion, jnp.zeros(tree.nv, dtype=q.dtype))
+    centres = world.poses.translation + jnp.einsum("lij,lj->li", world.poses.rotation, tree.com)
+    return -jnp.sum(tree.mass * (centres @ tree.gravity))
+
+
+def system(tree: KinematicTree) -> System:
+    r"""The tree as a [`jaxlag.System`][jaxlag.System], so that [`jaxlag.simulate`][jaxlag.simulate],
+    constraints, events, [`jaxlag.analysis.linearize`][jaxlag.analysis.linearize] and
+    [`jaxlag.fit`][jaxlag.fit] apply to it.
+
+    * ``L(q, q̇) = T − V``: ``T = ½ vᵀ M(q) v`` summed link by link, ``V = −Σ m_i g · c_i``, with
+      ``v`` from ``(q, q̇)`` (``ω = 2 vec(Q̄ ⊗ Q̇)`` for quaternions), plus ``½ (Q·Q̇)²`` per quaternion.
+    * ``|Q|² − 1 = 0`` for each ball's and free joint's quaternion (holonomic, one row each).
+    * Joint damping as the Rayleigh function ``R = ½ Σ damping_d v_d²``.
+    * Motors (``tree.actuation = B``) as the input: ``Q_u = (∂v/∂q̇)ᵀ B u``; give a control law with
+      [`System.with_control`][jaxlag.System.with_control].
+
+    Parameters: ``args`` is the tree (or ``None`` for the ``tree`` given here), so its masses,
+    centres of mass, inertias, gravity, damping and armature are differentiable inputs:
+    ``jl.simulate(sys, q0, qd0, ts, args=eqx.tree_at(lambda t: t.mass, tree, masses))``.
+
+    The dynamics are jaxlag's: ``M = ∂²L/∂q̇²`` and ``F`` by automatic differentiation of ``L``
+    (the recursive algorithms of this module compute the same ``M`` and forces, and are checked
+    against it in the tests).
+    """
+    if not isinstance(tree, KinematicTree):
+        raise TypeError(f"jaxlag.robots.system takes a KinematicTree (jaxlag.robots.load); got {type(tree)}.")
+    quaternions = _quaternion_blocks(tree)
+
+    def resolve(args) -> KinematicTree:
+        return tree if args is None else args
+
+    def lagrangian(q: Float[Array, " n"], qd: Float[Array, " n"], args) -> Float[Array, ""]:
+        robot = resolve(args)
+        v = tree_velocity(robot, q, qd)
+        value = kinetic_energy(robot, q, v) - potential_energy(robot, q)
+        if quaternions.size:
+            value = value + 0.5 * jnp.sum(jnp.sum(q[quaternions] * qd[quaternions], axis=-1) ** 2)
+        return value
+
+    def unit_quaternions(q: Float[Array, " n"], args) -> Float[Array, " k"]:
+        return jnp.sum(q[quaternions] ** 2, axis=-1) - 1.0
+
+    def dissipation(q: Float[Array, " n"], qd: Float[Array, " n"], args) -> Float[Array, ""]:
+        robot = resolve(args)
+        return 0.5 * jnp.sum(robot.damping * tree_velocity(robot, q, qd) ** 2)
+
+    def actuation(q: Float[Array, " n"], qd: Float[Array, " n"], u, args) -> Float[Array, " n"]:
+        robot = resolve(args)
+        force = robot.actuation @ jnp.atleast_1d(u)
+        _, pullback = jax.vjp(lambda rate: tree_velocity(robot, q, rate), qd)
+        return pullback(force)[0]
+
+    return System(
+        lagrangian,
+        holonomic=unit_quaternions if quaternions.size else None,
+        dissipation=dissipation,
+        actuation=actuation if tree.actuation.shape[1] else None,
+    )
