@@ -1,4 +1,4 @@
-r"""Robots from files: kinematic trees read from MJCF or URDF, and their dynamics in O(links).
+r"""Robots from files: kinematic trees read from MJCF or URDF, and their rigid-body dynamics.
 
 ```python
 import jaxlag.robots as jlr
@@ -19,7 +19,8 @@ velocity of the link's origin, then the angular velocity in the link's frame); s
 
 Reading files needs MuJoCo's model compiler, the ``robots`` extra (``pip install
 "jaxlag[robots]"``); nothing else here does. Every function is differentiable and works under
-``jit`` and ``vmap``; the inertial parameters are arrays of the tree.
+``jit`` and ``vmap``; the inertial parameters are arrays of the tree. `system` turns the tree
+into a [`jaxlag.System`][jaxlag.System] (``L = T − V``, quaternions with ``|Q|² = 1``).
 """
 
 from ._aba import forward_dynamics as forward_dynamics
