@@ -165,6 +165,17 @@ def as_jax_array(x, dtype=None) -> jax.Array:
     return jnp.asarray(x, dtype=dtype)
 
 
+def host_to_jax(x) -> jax.Array:
+    """``jnp.asarray(x)`` without compiling anything for host values: NumPy values as
+    `as_jax_array` converts them, Python scalars transferred with JAX's weak type (as
+    ``jnp.asarray`` gives them, so that ``9.81`` does not promote a float32 computation)."""
+    if isinstance(x, (bool, int, float, complex)):
+        return jax.device_put(x)
+    if isinstance(x, (np.ndarray, np.generic)):
+        return as_jax_array(x)
+    return jnp.asarray(x)
+
+
 def as_float_state(q0, qd0):
     """Initial coordinates and velocities as floating-point JAX arrays (ints are promoted)."""
     q0 = as_jax_array(q0)

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
+from ._conventions import host_to_jax
 from ._custom_types import RealScalarLike, Validated
 from ._errors import compiled_check
 from ._misc import is_concrete
@@ -19,7 +20,7 @@ _VALUES_MESSAGE = "A time table's `values` must be finite (no NaN or inf)."
 
 
 def _as_float_array(x, name: str) -> Array:
-    x = jnp.asarray(x)
+    x = host_to_jax(x)
     if jnp.issubdtype(x.dtype, jnp.complexfloating):
         raise TypeError(f"A time table's `{name}` must be real; got dtype {x.dtype}.")
     if not jnp.issubdtype(x.dtype, jnp.floating):

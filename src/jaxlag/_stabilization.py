@@ -195,7 +195,9 @@ def _free_mask(indices, n, dtype, name):
     indices = tuple(int(i) for i in indices)
     if not indices:
         return None
-    return jnp.ones((n,), dtype).at[jnp.asarray(indices)].set(0.0)
+    mask = np.ones((n,), np.dtype(dtype))  # on the host: no eager device program per shape
+    mask[list(indices)] = 0.0
+    return mask
 
 
 def consistent_initial_state(
@@ -235,7 +237,8 @@ def consistent_initial_state(
     n = q0.shape[0]
     free_q = _free_mask(fixed_q, n, q0.dtype, "fixed_q")
     free_qd = _free_mask(fixed_qd, n, q0.dtype, "fixed_qd")
-    t0 = jnp.asarray(t0, dtype=q0.dtype)
+    # A concrete time stays on the host (NumPy) until the compiled call: no eager conversion.
+    t0 = jnp.asarray(t0, dtype=q0.dtype) if isinstance(t0, jax.Array) else np.asarray(t0, dtype=q0.dtype)
     args = as_array_leaves(args, q0.dtype)
     if is_concrete((q0, qd0, t0, args)):
         # Eager: the projection without its compiled checks, then the check on the host, whose

@@ -37,7 +37,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import _compile as compilation
 from ._checks import AbstractLagrangianChecks
-from ._conventions import UserFunction, wrap_configuration_function
+from ._conventions import UserFunction, host_to_jax, wrap_configuration_function
 from ._custom_types import (
     Args,
     Coordinates,
@@ -112,7 +112,7 @@ def parameter_value(value, args, name):
     """A mass, inertia or ``g``: a number/array, or a function of ``args``."""
     if callable(value):
         value = value(args)
-    value = jnp.asarray(value)
+    value = host_to_jax(value)
     if not jnp.issubdtype(value.dtype, jnp.inexact):
         value = value.astype(jnp.result_type(float))
     return value

@@ -17,6 +17,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
 from .. import _compile as compilation
+from .._conventions import as_jax_array
 from .._custom_types import Scalar
 from .combinations import IdentifiableCombination, identifiable_combinations
 from .data import save_times
@@ -154,15 +155,15 @@ def fit_result(problem: Problem, search: Search, noise_std: float | None) -> Fit
         warnings.warn(f"jl.fit: {message}.", FitWarning, stacklevel=3)
     return FitResult(
         fitted,
-        model.spec.unravel(jnp.asarray(errors[:p])),
-        jnp.asarray(covariance[:p, :p]),
-        jnp.asarray(residual_std),
+        model.spec.unravel(as_jax_array(errors[:p])),
+        as_jax_array(covariance[:p, :p]),
+        as_jax_array(residual_std),
         np.asarray(search.history),
         (states[0][:, 0], states[1][:, 0]),
         search.num_steps,
         search.converged,
         states,
-        correlation=jnp.asarray(correlation[:p, :p]),
+        correlation=as_jax_array(correlation[:p, :p]),
         reduced_chi2=reduced_chi2,
         undetermined=tuple(names[j] for j in np.flatnonzero(~np.isfinite(errors)) if j not in insensitive),
         insensitive=tuple(names[j] for j in insensitive),
@@ -234,7 +235,7 @@ def _initial_state_errors(model, errors, states):
         return None
     if model.initial_mask is None:
         state_errors = errors.reshape((2, *np.shape(states[0])))
-        return jnp.asarray(state_errors[0][:, 0]), jnp.asarray(state_errors[1][:, 0])
+        return as_jax_array(state_errors[0][:, 0]), as_jax_array(state_errors[1][:, 0])
     # Known entries: standard error 0; estimated ones in ravel order (q entries, then qd).
     shape = np.shape(states[0][:, 0])
     q_se, qd_se, start = np.zeros(shape), np.zeros(shape), 0
@@ -242,7 +243,7 @@ def _initial_state_errors(model, errors, states):
         size = shape[0] * len(indices)
         target[:, list(indices)] = errors[start : start + size].reshape(shape[0], len(indices))
         start += size
-    return jnp.asarray(q_se), jnp.asarray(qd_se)
+    return as_jax_array(q_se), as_jax_array(qd_se)
 
 
 def _column_names(model, num_experiments, n) -> list[str]:

@@ -205,7 +205,7 @@ def clipped_cholesky(a, floor) -> tuple[Callable[[Any], Any], Bool[Array, ""]]:
     if n <= UNROLL_MAX:
         rows: list[list[Any]] = [[None] * n for _ in range(n)]
         inv_diag: list[Any] = [None] * n
-        ok = jnp.asarray(True)
+        ok = jax.device_put(True)  # a transfer, not an eager program when evaluated op by op
         for j in range(n):
             s = a[j, j]
             for k in range(j):
