@@ -5,8 +5,13 @@ compiled, differentiable diffrax simulation. Sign convention everywhere:
 ``d/dt ∂L/∂q̇ − ∂L/∂q = Jᵀλ + Aᵀμ − ∂R/∂q̇ + Q``, i.e. ``M q̈ = F + Jᵀλ + Aᵀμ``.
 
 Importing jaxlag changes no JAX setting; `enable_compilation_cache` is the opt-in for a
-cross-process compilation cache.
+cross-process compilation cache. ``jaxlag.learned`` (with optax's training code) and
+``jaxlag.experimental`` (with Pallas) are imported on first use, so that a script that needs
+neither does not pay for their import.
 """
+
+import importlib
+from typing import TYPE_CHECKING
 
 from . import (
     analysis as analysis,
@@ -18,13 +23,7 @@ from . import (
     coordinates as coordinates,
 )
 from . import (
-    experimental as experimental,
-)
-from . import (
     inputs as inputs,
-)
-from . import (
-    learned as learned,
 )
 from . import (
     loads as loads,
@@ -135,3 +134,20 @@ from ._variational import (
 from ._vector_field import EquationsOfMotion as EquationsOfMotion
 
 __version__ = "0.1.0"
+
+if TYPE_CHECKING:
+    from . import experimental as experimental
+    from . import learned as learned
+
+#: Subpackages imported on first access (PEP 562), not by ``import jaxlag``.
+_ON_FIRST_USE = ("experimental", "learned")
+
+
+def __getattr__(name: str):
+    if name in _ON_FIRST_USE:
+        return importlib.import_module(f"{__name__}.{name}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_ON_FIRST_USE})
