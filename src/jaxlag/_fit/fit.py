@@ -53,6 +53,7 @@ from typing_extensions import TypedDict, Unpack
 
 from .. import _errors as failures
 from .._adjoint import ForwardSensitivities
+from .._checks import Checks
 from .._conventions import wrap_state_function
 from .._custom_types import Scalar
 from .._misc import is_concrete
@@ -298,14 +299,26 @@ def least_squares_loss(
     and ``jax.jacfwd`` (pass ``simulation=dict(adjoint=diffrax.ForwardMode())``); useful to check
     gradients or to drive your own optimizer. ``simulation``: the options of
     [`simulate`][jaxlag.simulate], as in [`fit`][jaxlag.fit], forwarded untouched, ``adjoint``
-    included. The keywords ``solver``, ``stepsize_controller``, ``dt0``, ``max_solver_steps``
-    (``simulation``'s ``max_steps``), ``adjoint``, ``projection`` and ``baumgarte`` are
-    deprecated (a ``DeprecationWarning``), removed in the next release.
+    included, and ``checks``: under your ``jax.jit`` the checks of the simulation (and, for a
+    constrained system, of the projection of the initial state) are compiled into your program
+    and raise through host callbacks by default; with
+    ``simulation=dict(checks=jl.Checks(compiled=jl.NaNOnFailure()))`` a failed check or run
+    makes the loss NaN instead, and the program holds no host callback (JAX's persistent cache
+    can keep it, ``jax.export`` can serialize it). Eager calls raise either way. The keywords
+    ``solver``, ``stepsize_controller``, ``dt0``, ``max_solver_steps`` (``simulation``'s
+    ``max_steps``), ``adjoint``, ``projection`` and ``baumgarte`` are deprecated (a
+    ``DeprecationWarning``), removed in the next release.
     """
-    controlled = {k: v for k, v in FIT_CONTROLS.items() if k != "adjoint"}
+    controlled = {k: v for k, v in FIT_CONTROLS.items() if k not in ("adjoint", "checks")}
     renamed = {**DEPRECATED_SIMULATION_KEYWORDS, "adjoint": "adjoint"}
     options = dict(simulation_options(simulation, deprecated, "jl.least_squares_loss", controlled, renamed))
     adjoint = options.pop("adjoint", ForwardSensitivities())
+    checks = options.get("checks", Checks())
+    if not isinstance(checks, Checks):
+        raise TypeError(
+            "jl.least_squares_loss(simulation=dict(checks=...)) takes a jl.Checks, e.g. "
+            f"jl.Checks(compiled=jl.NaNOnFailure()); got {type(checks).__name__}."
+        )
     batch = stack(experiments)
     observe = wrap_state_function(observe or _observe_coordinates, "observation function")
     spec = ParamSpec(tuple(params), tuple(jnp.shape(v) for v in params.values()))
@@ -317,5 +330,8 @@ def least_squares_loss(
             "0, a perfect fit of no data."
         )
     free = {"params": spec.ravel({k: jnp.asarray(v, float) for k, v in params.items()})}
-    r = model.residuals(free, data, (batch.q0[:, None], batch.qd0[:, None]), adjoint)
+    # The checks that no option reaches (the projection of a constrained initial state, a
+    # System method in observe) follow the same choice, as inside simulate.
+    with failures.on_failure(checks.compiled):
+        r = model.residuals(free, data, (batch.q0[:, None], batch.qd0[:, None]), adjoint)
     return 0.5 * jnp.sum(r**2)
