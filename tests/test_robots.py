@@ -354,3 +354,20 @@ def test_system_with_ball_joints_follows_the_recursive_dynamics():
     np.testing.assert_allclose(
         jlr.system(tree).accelerations(q, qd), expected, atol=1e-10 * np.abs(expected).max()
     )
+
+
+def test_joint_limits_are_one_sided_constraints():
+    """A limited hinge stops at its range (plastic), and the stop's multiplier holds gravity's
+    torque ``m g x cos θ``."""
+    import jaxlag as jl
+
+    xml = """<mujoco><worldbody><body><joint type="hinge" axis="0 1 0" range="-30 30" limited="true"/>
+      <inertial pos="0.5 0 0" mass="1" diaginertia="0.01 0.01 0.01"/></body></worldbody></mujoco>"""
+    tree = jlr.load(xml)
+    ts = jnp.linspace(0.0, 1.5, 16)
+    traj = jl.simulate(jlr.system(tree), jnp.zeros(1), jnp.zeros(1), ts, events=jl.Events(max_segments=4))
+    stop = np.deg2rad(30.0)
+    assert traj.events is not None and traj.events.kinds()[0] == "contact"
+    np.testing.assert_allclose(traj.q[-1, 0], stop, atol=1e-9)
+    np.testing.assert_allclose(traj.multipliers[-1], [0.0, 9.81 * 0.5 * np.cos(stop)], atol=1e-7)
+    assert jlr.system(tree, limits=False).holonomic is None

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._mechanics.impacts import Unilateral
 from .._system import System
 from ._kinematics import world_motion
 from ._spatial import spatial_inertia
@@ -78,7 +79,7 @@ def potential_energy(tree: KinematicTree, q: Array) -> Array:
     return -jnp.sum(tree.mass * (centres @ tree.gravity))
 
 
-def system(tree: KinematicTree) -> System:
+def system(tree: KinematicTree, *, limits: bool = True, restitution: float = 0.0) -> System:
     r"""The tree as a [`jaxlag.System`][jaxlag.System], so that [`jaxlag.simulate`][jaxlag.simulate],
     constraints, events, [`jaxlag.analysis.linearize`][jaxlag.analysis.linearize] and
     [`jaxlag.fit`][jaxlag.fit] apply to it.
@@ -86,6 +87,10 @@ def system(tree: KinematicTree) -> System:
     * ``L(q, q̇) = T − V``: ``T = ½ vᵀ M(q) v`` summed link by link, ``V = −Σ m_i g · c_i``, with
       ``v`` from ``(q, q̇)`` (``ω = 2 vec(Q̄ ⊗ Q̇)`` for quaternions), plus ``½ (Q·Q̇)²`` per quaternion.
     * ``|Q|² − 1 = 0`` for each ball's and free joint's quaternion (holonomic, one row each).
+    * With ``limits=True`` (default), each limited hinge and slide as two one-sided holonomic rows,
+      ``q − lower ≥ 0`` and ``upper − q ≥ 0`` (after the quaternion rows), with Newton's
+      ``restitution`` at the stops (0: the joint stays at its stop, plastic). Their multipliers are
+      the stops' joint forces. The limits of ball joints (cones) are not imposed.
     * Joint damping as the Rayleigh function ``R = ½ Σ damping_d v_d²``.
     * Motors (``tree.actuation = B``) as the input: ``Q_u = (∂v/∂q̇)ᵀ B u``; give a control law with
       [`System.with_control`][jaxlag.System.with_control].
@@ -101,6 +106,15 @@ def system(tree: KinematicTree) -> System:
     if not isinstance(tree, KinematicTree):
         raise TypeError(f"jaxlag.robots.system takes a KinematicTree (jaxlag.robots.load); got {type(tree)}.")
     quaternions = _quaternion_blocks(tree)
+    stops = np.asarray(
+        [
+            i
+            for i, kind in enumerate(tree.joint_types)
+            if limits and tree.limited[i] and kind in ("hinge", "slide")
+        ],
+        dtype=np.int32,
+    )
+    stop_coordinates = np.asarray(tree.q_addresses, dtype=np.int32)[stops]
 
     def resolve(args) -> KinematicTree:
         return tree if args is None else args
@@ -113,8 +127,16 @@ def system(tree: KinematicTree) -> System:
             value = value + 0.5 * jnp.sum(jnp.sum(q[quaternions] * qd[quaternions], axis=-1) ** 2)
         return value
 
-    def unit_quaternions(q: Float[Array, " n"], args) -> Float[Array, " k"]:
-        return jnp.sum(q[quaternions] ** 2, axis=-1) - 1.0
+    def holonomic(q: Float[Array, " n"], args) -> Float[Array, " k"]:
+        robot = resolve(args)
+        angles = q[stop_coordinates]
+        return jnp.concatenate(
+            [
+                jnp.sum(q[quaternions] ** 2, axis=-1) - 1.0,
+                angles - robot.lower[stops],
+                robot.upper[stops] - angles,
+            ]
+        )
 
     def dissipation(q: Float[Array, " n"], qd: Float[Array, " n"], args) -> Float[Array, ""]:
         robot = resolve(args)
@@ -126,9 +148,12 @@ def system(tree: KinematicTree) -> System:
         _, pullback = jax.vjp(lambda rate: tree_velocity(robot, q, rate), qd)
         return pullback(force)[0]
 
+    rows = quaternions.shape[0] + 2 * stops.size
+    one_sided = tuple(range(quaternions.shape[0], rows))
     return System(
         lagrangian,
-        holonomic=unit_quaternions if quaternions.size else None,
+        holonomic=holonomic if rows else None,
+        unilateral=Unilateral(one_sided, restitution=restitution) if one_sided else (),
         dissipation=dissipation,
         actuation=actuation if tree.actuation.shape[1] else None,
     )
