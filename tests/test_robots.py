@@ -371,3 +371,14 @@ def test_joint_limits_are_one_sided_constraints():
     np.testing.assert_allclose(traj.q[-1, 0], stop, atol=1e-9)
     np.testing.assert_allclose(traj.multipliers[-1], [0.0, 9.81 * 0.5 * np.cos(stop)], atol=1e-7)
     assert jlr.system(tree, limits=False).holonomic is None
+
+
+def test_files_and_wrong_lengths(tmp_path):
+    path = tmp_path / "arm.urdf"
+    path.write_text(URDF)
+    from_file = jlr.load(path)
+    assert from_file.joint_types[-3:] == ("hinge", "hinge", "slide")
+    q = jnp.array([0.1, 0.2, 0.3])
+    np.testing.assert_allclose(jlr.mass_matrix(from_file, q), jlr.mass_matrix(jlr.load(URDF), q), rtol=1e-15)
+    with pytest.raises(ValueError, match=r"qpos\) of this tree has shape \(3,\); got shape \(2,\)"):
+        jlr.mass_matrix(from_file, jnp.zeros(2))

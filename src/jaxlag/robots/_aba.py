@@ -29,7 +29,7 @@ def forward_dynamics(
         q, v: configuration and velocity (see [`KinematicTree`][jaxlag.robots.KinematicTree]).
         force: the applied joint forces ``τ`` (``nv``); zero if omitted.
     """
-    q = as_state(tree, q)
+    q = as_state(tree, q, "q")
     v = as_state(tree, v)
     tau = jnp.zeros_like(v) if force is None else as_state(tree, force)
     lay = layout(tree)

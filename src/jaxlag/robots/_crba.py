@@ -22,7 +22,7 @@ def mass_matrix(tree: KinematicTree, q: Float[ArrayLike, " nq"]) -> Float[Array,
     The sums over subtrees and the products are dense masked products (``links²`` and ``nv²``
     entries), which cost less than a recursion for trees of a few hundred links.
     """
-    q = as_state(tree, q)
+    q = as_state(tree, q, "q")
     lay = layout(tree)
     motion = joint_motion(tree, q)
     poses = world_poses(tree, motion)

@@ -16,8 +16,18 @@ class LinkPoses(eqx.Module):
     translation: Float[Array, "links 3"]
 
 
-def as_state(tree: KinematicTree, x) -> Array:
-    return jnp.asarray(x, dtype=tree.mass.dtype)
+def as_state(tree: KinematicTree, x, kind: str = "v") -> Array:
+    """``x`` as an array of the tree's dtype, refused by name unless it has ``nq`` (``kind="q"``)
+    or ``nv`` entries."""
+    x = jnp.asarray(x, dtype=tree.mass.dtype)
+    size = tree.nq if kind == "q" else tree.nv
+    if x.shape != (size,):
+        what = "configuration q (MuJoCo's qpos)" if kind == "q" else "velocity-space vector (MuJoCo's qvel)"
+        raise ValueError(
+            f"jaxlag.robots: a {what} of this tree has shape ({size},); got shape {x.shape}. "
+            "Batch with jax.vmap."
+        )
+    return x
 
 
 def world_poses(tree: KinematicTree, motion: JointMotion) -> LinkPoses:
@@ -66,7 +76,7 @@ def forward_kinematics(tree: KinematicTree, q: Float[ArrayLike, " nq"]) -> LinkP
     The link's frame composes, from the world down, each link's placement in its parent and its
     joint's motion: ``R_i = R_{parent} R_{i/parent}``, ``p_i = p_{parent} + R_{parent} p_{i/parent}``.
     """
-    q = as_state(tree, q)
+    q = as_state(tree, q, "q")
     return world_poses(tree, joint_motion(tree, q))
 
 
@@ -86,7 +96,7 @@ def configuration_rate(
     r"""``q̇`` from the velocity ``v``: ``θ̇ = v`` for hinges and slides; ``Q̇ = ½ Q ⊗ (0, ω)``
     for a ball's quaternion (``ω`` in the link's frame); ``(ṗ, Q̇) = (v_world, ½ Q ⊗ (0, ω))`` for a
     free joint."""
-    q = as_state(tree, q)
+    q = as_state(tree, q, "q")
     v = as_state(tree, v)
     lay = layout(tree)
     qadr = np.asarray(tree.q_addresses, dtype=np.int32)

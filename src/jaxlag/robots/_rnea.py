@@ -53,7 +53,7 @@ def bias_forces(
 
     With them, the equation of motion is ``M(q) v̇ + C(q, v) v + g(q) = τ − damping · v``.
     """
-    q = as_state(tree, q)
+    q = as_state(tree, q, "q")
     v = as_state(tree, v)
     return _newton_euler(tree, q, v, jnp.zeros_like(v))
 
@@ -68,7 +68,7 @@ def inverse_dynamics(
     ``τ = M(q) v̇ + C(q, v) v + g(q) + damping · v`` (armature included in ``M``), the exact
     inverse of [`forward_dynamics`][jaxlag.robots.forward_dynamics]. Newton–Euler.
     """
-    q = as_state(tree, q)
+    q = as_state(tree, q, "q")
     v = as_state(tree, v)
     acceleration = as_state(tree, acceleration)
     return _newton_euler(tree, q, v, acceleration) + tree.armature * acceleration + tree.damping * v
