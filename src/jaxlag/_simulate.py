@@ -10,7 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, PyTree
 
 from . import _compile as compilation
 from . import _diagnosis
@@ -156,97 +156,68 @@ def _finish(system, fast, projection, solution, ys, t0, t1, q0, qd0, args, max_s
     )
 
 
+class _SolveArguments(eqx.Module):
+    """What `_solve` integrates: the inputs of the run and its options, by name. The arrays
+    are the program's inputs; everything else (functions, options, shapes) is static."""
+
+    system: System
+    q0: Float[Array, " n"]
+    qd0: Float[Array, " n"]
+    t0: RealScalarLike  # as in SimulationInputs: NumPy while concrete
+    t1: RealScalarLike
+    dt0: RealScalarLike | None
+    args: PyTree
+    solver: diffrax.AbstractSolver
+    stepsize_controller: diffrax.AbstractStepSizeController
+    saveat: diffrax.SaveAt
+    max_steps: int | None
+    adjoint: diffrax.AbstractAdjoint
+    event: diffrax.Event | None
+    progress_meter: diffrax.AbstractProgressMeter
+    baumgarte: Baumgarte | None
+    projection: Projection | None
+    check: bool
+    tolerance: float | Float[Array, ""]
+
+
 @compilation.filter_jit
-def _solve(
-    system,
-    q0,
-    qd0,
-    t0,
-    t1,
-    dt0,
-    args,
-    solver,
-    stepsize_controller,
-    saveat,
-    max_steps,
-    adjoint,
-    event,
-    progress_meter,
-    baumgarte,
-    projection,
-    check,
-    tolerance,
-    compiled,
-):
+def _solve(arguments: _SolveArguments, compiled: failures.AbstractOnFailure) -> Trajectory:
+    """The plain solve (no events) of ``arguments`` as one program, its checks compiled as
+    ``compiled`` says."""
     with failures.on_failure(compiled):  # for the checks inside the user's functions
-        return _solve_checked(
-            system,
-            q0,
-            qd0,
-            t0,
-            t1,
-            dt0,
-            args,
-            solver,
-            stepsize_controller,
-            saveat,
-            max_steps,
-            adjoint,
-            event,
-            progress_meter,
-            baumgarte,
-            projection,
-            check,
-            tolerance,
-        )
+        return _solve_checked(arguments)
 
 
-def _solve_checked(
-    system,
-    q0,
-    qd0,
-    t0,
-    t1,
-    dt0,
-    args,
-    solver,
-    stepsize_controller,
-    saveat,
-    max_steps,
-    adjoint,
-    event,
-    progress_meter,
-    baumgarte,
-    projection,
-    check,
-    tolerance,
-):
+def _solve_checked(a: _SolveArguments) -> Trajectory:
     """The body of `_solve`."""
-    system.check(q0, qd0, t0, args)  # shapes only: runs once per compilation
-    if check:
-        q0, qd0 = validate_initial_state(system, q0, qd0, t0, args, tolerance)
-    solver = stages_for_adjoint(solver, adjoint)  # diffrax does not see it through StepOnce
-    fast, solver, term = _prepare(system, q0, qd0, t0, args, solver, baumgarte, projection, adjoint)
+    q0, qd0, args = a.q0, a.qd0, a.args
+    a.system.check(q0, qd0, a.t0, args)  # shapes only: runs once per compilation
+    if a.check:
+        q0, qd0 = validate_initial_state(a.system, q0, qd0, a.t0, args, a.tolerance)
+    solver = stages_for_adjoint(a.solver, a.adjoint)  # diffrax does not see it through StepOnce
+    fast, solver, term = _prepare(a.system, q0, qd0, a.t0, args, solver, a.baumgarte, a.projection, a.adjoint)
     solver = StepOnce(solver)
     # Failures are recorded (jaxlag._errors), not thrown by diffrax: simulate raises with the
     # numbers and a diagnosis instead of "max_steps reached" after 65,536 rejected NaN steps.
-    controller = guard(stepsize_controller, dt0)  # diffrax's own dt0 check is a host callback
+    controller = guard(a.stepsize_controller, a.dt0)  # diffrax's own dt0 check is a host callback
     solution = _integrate(
         term,
         solver,
-        t0,
-        t1,
+        a.t0,
+        a.t1,
         None,
         (q0, qd0),
         args,
-        saveat,
+        a.saveat,
         controller,
-        adjoint,
-        event,
-        max_steps,
-        progress_meter,
+        a.adjoint,
+        a.event,
+        a.max_steps,
+        a.progress_meter,
     )
-    return _finish(system, fast, projection, solution, solution.ys, t0, t1, q0, qd0, args, max_steps)
+    return _finish(
+        a.system, fast, a.projection, solution, solution.ys, a.t0, a.t1, q0, qd0, args, a.max_steps
+    )
 
 
 # The inputs that the solver steps see: the only ones the one-loop tangent solve may perturb.
@@ -418,27 +389,27 @@ class _Run(AbstractPushingRun):
         i = inputs
         if self.segmented:
             return solve_segments(inputs=i, events=i.events, run=self, adjoint=adjoint)
-        return _solve(
-            i.system,
-            i.q0,
-            i.qd0,
-            i.t0,
-            i.t1,
-            i.dt0,
-            i.args,
-            i.solver,
-            i.stepsize_controller,
-            i.saveat,
-            self.max_steps,
-            adjoint,
-            i.event,
-            self.progress_meter,
-            i.baumgarte,
-            i.projection,
-            self.check,
-            self.tolerance,
-            self.compiled,
+        arguments = _SolveArguments(
+            system=i.system,
+            q0=i.q0,
+            qd0=i.qd0,
+            t0=i.t0,
+            t1=i.t1,
+            dt0=i.dt0,
+            args=i.args,
+            solver=i.solver,
+            stepsize_controller=i.stepsize_controller,
+            saveat=i.saveat,
+            max_steps=self.max_steps,
+            adjoint=adjoint,
+            event=i.event,
+            progress_meter=self.progress_meter,
+            baumgarte=i.baumgarte,
+            projection=i.projection,
+            check=self.check,
+            tolerance=self.tolerance,
         )
+        return _solve(arguments, self.compiled)
 
 
 def simulate(
