@@ -6,7 +6,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._kinematics import as_state, world_motion
 from ._recursion import ascend, descend
 from ._spatial import force_cross, motion_cross, motion_transform, spatial_inertia
-from ._tree import KinematicTree, joint_bias, joint_motion, layout, padded, unpadded
+from ._tree import _NV, KinematicTree, joint_bias, joint_motion, layout, padded, unpadded
 
 
 def forward_dynamics(
@@ -44,22 +44,29 @@ def forward_dynamics(
     bias = jnp.einsum("lij,lj->li", force_cross(velocities), jnp.einsum("lij,lj->li", inertia, velocities))
     # Past a joint's degrees of freedom its rows are padding: D gets 1 there so that it stays
     # invertible, and u and S are 0, so the padded accelerations are 0.
-    mask = jnp.asarray(lay.dof_mask)
-    diagonal = jnp.where(mask, padded(tree, tree.armature), jnp.ones_like(mask, dtype=q.dtype))
-    applied = padded(tree, tau - tree.damping * v)
+    # The sweeps carry as many columns of S as the widest joint has degrees of freedom (one for
+    # a tree of hinges and slides, where D⁻¹ is a division).
+    width = max(1, max(_NV[kind] for kind in tree.joint_types))
+    mask = jnp.asarray(lay.dof_mask[:, :width])
+    subspace = motion.subspace[:, :, :width]
+    diagonal = jnp.where(mask, padded(tree, tree.armature)[:, :width], jnp.ones_like(mask, dtype=q.dtype))
+    applied = padded(tree, tau - tree.damping * v)[:, :width]
+
+    def invert(d):
+        return 1.0 / d if width == 1 else jnp.linalg.inv(d)
 
     def inward(total, x):
         articulated, pressure = total
         xi, si, ci, taui, di = x
         u_mat = articulated @ si
-        d_inv = jnp.linalg.inv(si.T @ u_mat + jnp.diag(di))
+        d_inv = invert(si.T @ u_mat + jnp.diag(di))
         u = taui - si.T @ pressure
         reduced = articulated - u_mat @ d_inv @ u_mat.T
         passed = pressure + reduced @ ci + u_mat @ (d_inv @ u)
         return (xi.T @ reduced @ xi, xi.T @ passed), (u_mat, d_inv, u)
 
     u_mats, d_invs, us = ascend(
-        lay.parent_slot, (inertia, bias), inward, (transform, motion.subspace, product, applied, diagonal)
+        lay.parent_slot, (inertia, bias), inward, (transform, subspace, product, applied, diagonal)
     )
 
     def outward(parent, x):
@@ -69,8 +76,8 @@ def forward_dynamics(
         acceleration = d_inv @ (u - u_mat.T @ a)
         return a + si @ acceleration, acceleration
 
-    root = (jnp.concatenate([jnp.zeros(3, dtype=q.dtype), -tree.gravity]), jnp.zeros(6, dtype=q.dtype))
+    root = (jnp.concatenate([jnp.zeros(3, dtype=q.dtype), -tree.gravity]), jnp.zeros(width, dtype=q.dtype))
     _, accelerations = descend(
-        lay.parent_slot, root, outward, (transform, motion.subspace, product, u_mats, d_invs, us)
+        lay.parent_slot, root, outward, (transform, subspace, product, u_mats, d_invs, us)
     )
     return unpadded(tree, accelerations)

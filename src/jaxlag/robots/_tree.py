@@ -274,7 +274,8 @@ def padded(tree: KinematicTree, v: Float[Array, " nv"]) -> Float[Array, "links 6
     return extended[layout(tree).dof_index]
 
 
-def unpadded(tree: KinematicTree, rows: Float[Array, "links 6"]) -> Float[Array, " nv"]:
+def unpadded(tree: KinematicTree, rows: Float[Array, "links width"]) -> Float[Array, " nv"]:
+    """The velocity coordinates from each link's row (its first ``width`` columns)."""
     lay = layout(tree)
     return rows[lay.dof_link, lay.dof_column]
 
