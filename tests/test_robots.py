@@ -342,11 +342,11 @@ def test_imported_and_hand_written_double_pendulum_move_alike():
     )
 
 
-def test_system_with_ball_joints_follows_the_recursive_dynamics():
+def test_system_with_free_and_ball_joints_follows_the_recursive_dynamics():
     """Quaternion coordinates with ``|Q|² = 1`` (jaxlag's convention): the KKT solve of the
     autodiff Lagrangian gives ``q̈ = d/dt configuration_rate(q, v)`` with ``v̇`` from ABA."""
-    tree = jlr.load(BALLS)
-    model = mujoco.MjModel.from_xml_string(BALLS)
+    tree = jlr.load(FLOATING_BASE)
+    model = mujoco.MjModel.from_xml_string(FLOATING_BASE)
     q, v = (jnp.asarray(x[0]) for x in _random_states(model, np.random.default_rng(11), 1))
     qd = jlr.configuration_rate(tree, q, v)
     acceleration = jlr.forward_dynamics(tree, q, v)
