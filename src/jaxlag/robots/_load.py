@@ -95,7 +95,10 @@ def from_mujoco(model: Any) -> KinematicTree:
     (a free joint's link at the identity: its ``q`` is the world pose). Joints keep MuJoCo's
     ``qpos`` and ``qvel`` layout. Refused, by name: equality constraints, tendons, friction loss,
     joint stiffness, gravity compensation, and actuators other than motors on hinges and slides.
-    Geoms (contacts) and joint limits are not dynamics here: the limits are kept on the tree.
+    Geoms (contacts) are not imported. Joint limits are kept on the tree (``limited``, ``lower``,
+    ``upper``); [`system`][jaxlag.robots.system] imposes those of hinges and slides as one-sided
+    constraints, while the recursive algorithms ignore them (as MuJoCo's ``qacc`` does away from
+    the limits).
     """
     mujoco = _mujoco()
     _refuse(model, mujoco)
