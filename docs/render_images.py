@@ -334,3 +334,39 @@ def render_models():
     )
     ax.plot(p["xB"], -p["zB"], "ko", ms=5)  # rider's centre of mass
     save(fig, "whipple_bicycle", "side view (x forward, z up)")
+
+    # robots read from MJCF (jaxlag.robots, needs MuJoCo): link origins from forward kinematics
+    import jaxlag.robots as jlr
+
+    tree = systems.default_args(systems.robot_arm)
+    fig, ax = figure(three_d=True)
+    for q, color in (([0.0, 0.0, 0.0, 0.0, 0.0, 0.0], "0.7"), ([0.6, 0.5, -0.9, 0.4, 0.8, 0.0], "tab:blue")):
+        poses = jlr.forward_kinematics(tree, jnp.asarray(q))
+        tip = poses.translation[-1] + poses.rotation[-1] @ jnp.array([0.08, 0.0, 0.0])
+        points = np.vstack([np.asarray(poses.translation), np.asarray(tip)[None]])
+        plot.chain(points, ax=ax, origin=(0.0, 0.0, 0.0), color=color)
+    plot.body_axes(tip, poses.rotation[-1], ax=ax, length=0.1)
+    ax.set(xlim=(-0.1, 0.8), ylim=(-0.1, 0.8), zlim=(0.0, 0.8))
+    save(fig, "robot_arm", "six hinges from MJCF; two poses")
+
+    tree = systems.default_args(systems.space_robot)
+    q = jnp.asarray([0.0, 0.0, 0.0, 0.97, 0.05, 0.1, 0.2, 0.5, -0.6, -0.4, 0.7])
+    q = q.at[3:7].set(q[3:7] / jnp.linalg.norm(q[3:7]))
+    poses = jlr.forward_kinematics(tree, q)
+    R, p = np.asarray(poses.rotation[0]), np.asarray(poses.translation[0])
+    fig, ax = figure(three_d=True)
+    half = np.array([0.3, 0.2, 0.15])
+    for k in range(3):  # the base: a box, its twelve edges
+        i, j = (k + 1) % 3, (k + 2) % 3
+        for s in (-1, 1):
+            corners = [
+                s * half[k] * e[k] + a * half[i] * e[i] + b * half[j] * e[j]
+                for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))
+            ]
+            plot.chain(p + np.asarray(corners) @ R.T, ax=ax, closed=True, marker=None, lw=0.8, color="0.5")
+    for upper, fore in ((1, 2), (3, 4)):
+        tip = poses.translation[fore] + poses.rotation[fore] @ jnp.array([0.4, 0.0, 0.0])
+        plot.chain(np.asarray([poses.translation[upper], poses.translation[fore], tip]), ax=ax)
+    plot.body_axes(p, R, ax=ax, length=0.25)
+    ax.set(xlim=(-0.5, 1.2), ylim=(-0.85, 0.85), zlim=(-0.85, 0.85))
+    save(fig, "space_robot", "free base (quaternion), two arms")

@@ -32,6 +32,8 @@ model                                   forms / coordinates
 `ball_on_turntable`               ``(x, y)`` and a quaternion, rolling on a moving table
 `whipple_bicycle`                 ``(x, y, ψ, φ, θ, δ, θ_R, θ_F)``: four bodies, two rolling
                                         wheels (benchmark of Meijaard et al. 2007)
+`robot_arm`                       six hinges read from MJCF (``jaxlag.robots``), six motors
+`space_robot`                     a free-flying base (position, quaternion) and two arms
 =====================================  =========================================================
 """
 
@@ -47,6 +49,7 @@ from ._pendulums import (
     spherical_pendulum,
 )
 from ._rigid import ball_on_turntable, gyroscope, heavy_top, rolling_disk_3d, torque_free_body
+from ._robots import robot_arm, space_robot
 from ._rolling import disk_on_incline, knife_edge, rolling_disk
 from ._surfaces import (
     bead_on_hoop,
@@ -75,9 +78,11 @@ __all__ = [
     "n_link_pendulum",
     "particle_on_cone",
     "particle_on_sphere",
+    "robot_arm",
     "rolling_disk",
     "rolling_disk_3d",
     "simple_pendulum",
+    "space_robot",
     "spherical_pendulum",
     "spiral",
     "torque_free_body",

@@ -118,8 +118,13 @@ def check_form(name: str, form: str, allowed: tuple[str, ...]) -> str:
     return form
 
 
-def default_args(factory: Validated[Model]) -> dict:
-    """A fresh dict of a model's default parameters (edit it and pass it as ``args``)."""
+def default_args(factory: Validated[Model]) -> Any:
+    """A fresh dict of a model's default parameters (edit it and pass it as ``args``); for the
+    robots (`robot_arm`, `space_robot`) their [`KinematicTree`][jaxlag.robots.KinematicTree]
+    (immutable: edit it with ``equinox.tree_at``; loading it needs MuJoCo)."""
     if not hasattr(factory, "defaults"):
         raise TypeError(f"{factory!r} is not a jaxlag.systems model.")
+    tree = getattr(factory, "tree", None)
+    if tree is not None:
+        return tree()
     return dict(factory.defaults)
