@@ -14,7 +14,9 @@ bytes of that module and its host callbacks (``custom_call`` targets containing 
 persistent compilation cache does not store a program with a host callback, so every process
 compiles it again). With ``--sites`` a column gives the innermost frame in ``src/jaxlag/`` on the
 stack at each compilation, jaxlag's jit wrapper left out (``script`` when jaxlag is not on the
-stack: the script's own eager ``jax.numpy``, ``jax.jit``, or the transposes of ``jax.grad``).
+stack: the script's own eager ``jax.numpy``, ``jax.jit``, or the transposes of ``jax.grad``). The
+traces (event ``/jax/core/compile/jaxpr_trace_duration``, one per traced function, nested ones
+included) are counted per stage, and the names traced more than once listed.
 
     python -m benchmarks.program_table                    # all stages, ~15 minutes on one core
     python -m benchmarks.program_table readme fit         # some stages
@@ -311,6 +313,8 @@ def print_stage(name: str, result: dict, sites: bool = False) -> None:
         f"jaxlag), {t['compile_s']:.2f} s XLA compile, {t['lower_s']:.2f} s lowering, {t['lines']} HLO "
         f"lines ({t['bytes'] / 1024:.0f} KiB), {t['with_callbacks']} with host callbacks"
     )
+    traced = result["traces"].values()
+    print(f"traces: {sum(n for n, _ in traced)} ({sum(s for _, s in traced):.2f} s)")
     again = {k: v for k, v in result["traces"].items() if v[0] > 1}
     if again:
         print(
@@ -328,14 +332,20 @@ def _arrow(b, a, fmt: str = "{}") -> str:
 
 def compare(before: dict, after: dict, detail: tuple[str, ...] = ("readme",)) -> None:
     """Before → after totals of the stages present in both, and per program for ``detail``."""
-    print("| stage | programs | compiled from jaxlag | XLA compile s | HLO lines | with host callbacks |")
-    print("|---|---|---|---|---|---|")
+    print(
+        "| stage | programs | compiled from jaxlag | XLA compile s | HLO lines | with host callbacks "
+        "| traces | tracing s |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
     for name in [n for n in after if n in before]:
         b, a = totals(before[name]["programs"]), totals(after[name]["programs"])
+        tb, ta = (list(r[name]["traces"].values()) for r in (before, after))
         print(
             f"| {name} | {_arrow(b['programs'], a['programs'])} | {_arrow(b['jaxlag'], a['jaxlag'])} "
             f"| {b['compile_s']:.1f} → {a['compile_s']:.1f} | {_arrow(b['lines'], a['lines'])} "
-            f"| {_arrow(b['with_callbacks'], a['with_callbacks'])} |"
+            f"| {_arrow(b['with_callbacks'], a['with_callbacks'])} "
+            f"| {_arrow(sum(n for n, _ in tb), sum(n for n, _ in ta))} "
+            f"| {sum(s for _, s in tb):.2f} → {sum(s for _, s in ta):.2f} |"
         )
     for name in [n for n in detail if n in before and n in after]:
         rows_b = {r["name"]: r for r in group(before[name]["programs"])}
