@@ -58,12 +58,13 @@ import time
 from collections.abc import Callable
 from typing import Any, ClassVar
 
-import diffrax
-import jax
-import jax.numpy as jnp
-import numpy as np
+from . import common  # first: pins the core and sets XLA_FLAGS before jax is imported
 
-from . import common  # pins the core, sets XLA_FLAGS before the backend starts, float64
+# isort: split
+import diffrax  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
 
 SIZES = (5, 10) if common.QUICK else (10, 50, 100, 200)
 STEPS = 20 if common.QUICK else 100
@@ -73,7 +74,7 @@ BATCH_STEPS = 10 if common.QUICK else 50
 CAP_S = float(os.environ.get("BENCH_ROBOTS_CAP", "240"))
 #: A contender whose call (STEPS steps) is predicted past this many seconds at the next N, from its
 #: cost at this N times (N_next / N)^2.5, is skipped there (the timing rounds would take minutes).
-CALL_CAP_S = float(os.environ.get("BENCH_ROBOTS_CALL_CAP", "4"))
+CALL_CAP_S = float(os.environ.get("BENCH_ROBOTS_CALL_CAP", "20"))
 FIRST_RESULT_TARGET_S = 5.0  # issue 38: first result at N = 100
 
 _NO_CONTACT = '<option><flag contact="disable"/></option>'
