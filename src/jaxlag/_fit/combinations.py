@@ -96,7 +96,7 @@ def identifiable_combinations(null, x, generalized, names) -> tuple[Identifiable
         values = x[involved]
         if np.any((values < 0) & (a != np.round(a))):
             continue  # a negative parameter to a fractional power: no real monomial
-        sign = np.prod(np.where(values < 0, (-1.0) ** a, 1.0))
+        sign = (-1.0) ** int(np.sum(a[values < 0]))  # integer powers there (checked above)
         value = float(sign * np.prod(np.abs(values) ** a))
         w = np.zeros(x.size)
         w[involved] = a / values
