@@ -21,12 +21,18 @@ from .. import _compile as compilation
 from .. import _diagnosis
 from .. import _errors as failures
 from .._checks import Checks
+from .._conventions import as_jax_array
 from .._errors import FailureCode
+from .._mechanics import constraints as _constraints
+from .._mechanics.lagrangian import as_time, mass_solver
+from .._misc import is_concrete
 from .._simulate import simulate
 from .._stabilization import (
+    _schur_correction,
     consistent_initial_state,
     default_projection_tolerance,
     position_failure_message,
+    project_state,
     projection_with_residuals,
 )
 from .data import Data
@@ -34,19 +40,28 @@ from .options import Identity
 
 
 class ParamSpec(eqx.Module):
-    """Static description of the parameter dict, so repeated fits reuse compiled code."""
+    """Static description of the parameter dict, so repeated fits reuse compiled code.
+
+    `ravel` and `unravel` of known values (NumPy or JAX arrays outside a trace) work on the
+    host: eager ``jax.numpy`` would compile a small program for each operation."""
 
     keys: tuple = eqx.field(static=True)
     shapes: tuple = eqx.field(static=True)
 
     def ravel(self, params):
+        if is_concrete(params):
+            return as_jax_array(np.concatenate([np.ravel(np.asarray(params[k])) for k in self.keys]))
         return jnp.concatenate([jnp.ravel(params[k]) for k in self.keys])
 
     def unravel(self, flat):
+        concrete = is_concrete(flat)
+        if concrete:
+            flat = np.asarray(flat)
         out, i = {}, 0
         for k, shape in zip(self.keys, self.shapes):
             size = int(np.prod(shape))
             out[k] = flat[i : i + size].reshape(shape)
+            out[k] = as_jax_array(out[k]) if concrete else out[k]
             i += size
         return out
 
@@ -137,7 +152,7 @@ class Model(eqx.Module):
             residual = jnp.zeros((), q0.dtype)
             if self.system.is_constrained:
                 if health:
-                    q0, qd0, residual, _ = projection_with_residuals(self.system, q0, qd0, ts[0], args)
+                    q0, qd0, residual = _projection_with_residual(self.system, q0, qd0, ts[0], args)
                 else:
                     q0, qd0 = consistent_initial_state(self.system, q0, qd0, ts[0], args)
             if health:  # projected states are on the manifold: the failure record covers the rest
@@ -188,6 +203,32 @@ class Model(eqx.Module):
             pieces.append((w * (qd_end[:, :-1] - states[1][:, 1:])).ravel())
         r = jnp.concatenate(pieces)
         return (r, checks[0]) if health else r
+
+
+def _projection_with_residual(system, q0, qd0, t0, args, newton_steps: int = 20):
+    """``(q, qd, max |f(q)|)``: `projection_with_residuals` (the projection of
+    `consistent_initial_state`, its checks left to the host) with the Newton iterations of the
+    positions in one loop of the program instead of ``newton_steps`` copies of them: the same
+    iterations (the metric ``M`` at the incoming state, held fixed), then the velocities
+    projected with ``M`` at the corrected positions, as ``project_state`` does. Unrolled, the
+    iterations were a third of the fit's Jacobian program and of its tracing time (the
+    constraint function and its Jacobian traced, differentiated and batched 20 times)."""
+    if system.holonomic is None:
+        q, qd, position, _ = projection_with_residuals(system, q0, qd0, t0, args, newton_steps)
+        return q, qd, position
+    t = as_time(t0, q0)
+    solve_mass = mass_solver(system, q0, qd0, t, args)
+
+    def newton(_, q):
+        f = _constraints.holonomic_residual(system, q, t, args)
+        jac = _constraints.holonomic_jacobian(system, q, t, args, f.shape[0])
+        return q - _schur_correction(system, solve_mass, jac, f)
+
+    q = jax.lax.fori_loop(0, newton_steps, newton, q0)
+    # No Newton step left: the velocity projection with M factored at the corrected q.
+    q, qd = project_state(system, q, qd0, t, args, newton_steps=0)
+    position = jnp.max(jnp.abs(_constraints.holonomic_residual(system, q, t, args)), initial=0.0)
+    return q, qd, position
 
 
 class Problem(eqx.Module):
@@ -283,7 +324,7 @@ def guess_states(model: Model, ts, q0, qd0, args, starts):
     return guess.q[:, starts], guess.qd[:, starts]
 
 
-@compilation.filter_jit
 def unconstrained(model: Model, params):
-    """The free parameters (raveled, unconstrained) of the physical ``params``."""
+    """The free parameters (raveled, unconstrained) of the physical ``params``: on the host for
+    known values (no program is compiled for them)."""
     return model.unconstrained(params)

@@ -19,6 +19,17 @@ SegmentStates = Float[np.ndarray | Array, "experiments segments n"]
 
 
 # ----------------------------------------------------------------------------- reparameterization
+def _numpy_for_known(x) -> Any:
+    """NumPy for known values (the starting point, computed on the host: eager ``jax.numpy``
+    would compile a program per operation), ``jax.numpy`` for traced ones."""
+    return np if is_concrete(x) else jnp
+
+
+def _as_array(x) -> Any:
+    """A NumPy scalar as an array (what NumPy returns for a 0-d input), anything else as it is."""
+    return np.asarray(x) if isinstance(x, np.generic) else x
+
+
 class Identity(eqx.Module):
     """No reparameterization: ``θ = u``."""
 
@@ -35,8 +46,8 @@ class Positive(eqx.Module):
     def to_physical(self, u: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
         return jnp.exp(u)
 
-    def to_unconstrained(self, p: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
-        return jnp.log(p)
+    def to_unconstrained(self, p: Float[ArrayLike, "*shape"]) -> Float[Array | np.ndarray, "*shape"]:
+        return _as_array(_numpy_for_known(p).log(p))
 
 
 class Bounded(eqx.Module):
@@ -67,9 +78,10 @@ class Bounded(eqx.Module):
     def to_physical(self, u: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
         return jnp.asarray(self.lower + (self.upper - self.lower) * jax.nn.sigmoid(u))
 
-    def to_unconstrained(self, p: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
+    def to_unconstrained(self, p: Float[ArrayLike, "*shape"]) -> Float[Array | np.ndarray, "*shape"]:
+        xp = _numpy_for_known((p, self.lower, self.upper))
         s = (p - self.lower) / (self.upper - self.lower)
-        return jnp.log(s) - jnp.log1p(-s)
+        return _as_array(xp.log(s) - xp.log1p(-s))
 
 
 # ----------------------------------------------------------------------------- options
