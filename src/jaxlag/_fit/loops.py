@@ -22,18 +22,20 @@ from jax.flatten_util import ravel_pytree
 from .. import _compile as compilation
 from .._adjoint import ForwardSensitivities
 from .lean import lean_jit
-from .model import Linearization, Problem, residuals_and_jacobian
+from .model import Linearization, Linearizer, Problem
 
 
 class Search(eqx.Module):
     """Where a loop ended: the free variables ``free``, ``history`` (``ℓ`` after each step, index 0
-    at the start), ``num_steps``, ``converged``, and the last linearization (None for optax)."""
+    at the start), ``num_steps``, ``converged``, the last linearization (None for optax) and
+    which program linearized last (`Linearizer.lean`; None for optax)."""
 
     free: dict[str, Any]
     history: list[float]
     num_steps: int
     converged: bool
     linearization: Linearization | None
+    lean: bool | None = None
 
 
 def least_squares_loop(
@@ -48,9 +50,9 @@ def least_squares_loop(
     The loss after each step is ``½ |r|²`` at the point the solver returns: the trial point when
     it accepted it, else the last accepted point.
     """
-    model, data, fixed_states = problem.model, problem.data, problem.fixed_states
     free, trial, history, converged, steps = problem.free, problem.free, [], False, 0
-    linearization = residuals_and_jacobian(model, free, data, fixed_states)
+    linearize = Linearizer(problem.model, problem.data, problem.fixed_states, free)
+    linearization = linearize(free)
     state = _ls_init(solver, free, linearization)
     loss = float(0.5 * np.sum(np.asarray(linearization.residuals) ** 2))
     if max_steps < 1:
@@ -58,7 +60,7 @@ def least_squares_loop(
     with _progress_bar(max_steps, progress) as bar:
         for steps in range(1, max_steps + 1):
             if steps > 1:
-                linearization = residuals_and_jacobian(model, trial, data, fixed_states)
+                linearization = linearize(trial)
             free, state, trial, done, accepted, trial_loss = _ls_step(solver, free, state, linearization)
             done, accepted, trial_loss = jax.device_get((done, accepted, trial_loss))
             loss = float(trial_loss) if accepted else loss
@@ -70,7 +72,7 @@ def least_squares_loop(
             if bool(done):
                 converged = True
                 break
-    return Search(free, _finite(history), steps, converged, linearization)
+    return Search(free, _finite(history), steps, converged, linearization, linearize.lean)
 
 
 def optax_loop(

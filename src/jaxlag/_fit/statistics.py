@@ -118,7 +118,7 @@ def fit_result(problem: Problem, search: Search, noise_std: float | None) -> Fit
     flat = np.concatenate([np.ravel(np.asarray(leaf)) for leaf in jax.tree.leaves(free)])
     linearization = search.linearization
     if linearization is None or not np.array_equal(flat, np.asarray(linearization.point)):
-        linearization = residuals_and_jacobian(model, free, problem.data, problem.fixed_states)
+        linearization = residuals_and_jacobian(model, free, problem.data, problem.fixed_states, search.lean)
     # else the last step was taken at (and accepted) this point: its linearization is the one here
     fitted, jac, x, states = jax.device_get(
         _summary(model, free, problem.fixed_states, linearization.jacobian)
