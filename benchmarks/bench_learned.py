@@ -25,7 +25,9 @@ recipe's losses and optimizers, drawing the minibatches of the second phase with
 ``--hand-written`` trains ``jll.DeLaN`` and ``jll.ConstrainedLagrangian`` next to the same forms
 written by hand through ``jl.System`` on a user's setting (8 trajectories of 101 samples, width
 128, depth 3, clipped adam with a cosine decay from 1e-3, BENCH_HAND_STEPS full-batch steps) and
-writes its section of RESULTS_learned.md.
+writes its section of RESULTS_learned.md (about 1.5 h on this shared machine at 2000 steps; the rows
+are saved in BENCH_HAND_ROWS: BENCH_HAND_ONLY=name:targets,... reruns some contenders and keeps the
+others, ``--hand-written --report`` rebuilds the section).
 
 Metric: held-out rollouts (``jl.simulate_batch``, Tsit5, rtol 1e-7, atol 1e-9) from the true
 initial states; error = RMS over the bobs of the Euclidean position error of each bob, in metres
@@ -343,12 +345,21 @@ class HandConstrained(eqx.Module):
 HAND_CONTENDERS = (
     ("jll.DeLaN", "DeLaN", "scaled"),
     ("jll.DeLaN", "DeLaN", "library"),
+    ("jll.DeLaN", "DeLaN", "raw"),
     ("hand-written DeLaN", "DeLaN", "raw"),
     ("jll.ConstrainedLagrangian", "CLNN", "scaled"),
     ("jll.ConstrainedLagrangian", "CLNN", "library"),
+    ("jll.ConstrainedLagrangian", "CLNN", "raw"),
     ("hand-written constrained", "CLNN", "raw"),
     ("hand-written constrained", "CLNN", "scaled"),
 )
+#: The rows of `compare_hand_written`, saved after every run, so that BENCH_HAND_ONLY (a
+#: comma-separated list of ``name:targets``) can rerun some contenders and keep the others' rows
+#: (of the same HAND_STEPS), and ``--hand-written --report`` can rebuild the section.
+HAND_ROWS = Path(
+    os.environ.get("BENCH_HAND_ROWS", Path(tempfile.gettempdir()) / "jaxlag_bench_learned_hand_rows.json")
+)
+HAND_ONLY = tuple(c for c in os.environ.get("BENCH_HAND_ONLY", "").split(",") if c)
 
 
 def hand_model(name, key):
@@ -377,7 +388,12 @@ def compare_hand_written():
     cosine decay from 1e-3, HAND_STEPS full-batch steps; θ̈ RMS on the held-out trajectories of
     `main`. Every contender starts from the same key; the pairs differ in the model and in the
     acceleration targets (HAND_CONTENDERS). Writes its section of RESULTS_learned.md.
+    BENCH_HAND_ONLY runs only the contenders it names and keeps the other rows saved in HAND_ROWS.
     """
+    contenders = [c for c in HAND_CONTENDERS if not HAND_ONLY or f"{c[0]}:{c[2]}" in HAND_ONLY]
+    unknown = set(HAND_ONLY) - {f"{c[0]}:{c[2]}" for c in HAND_CONTENDERS}
+    if unknown:
+        raise SystemExit(f"BENCH_HAND_ONLY: no contender {sorted(unknown)}")
     optimizer = optax.chain(
         optax.clip_by_global_norm(1.0), optax.adam(optax.cosine_decay_schedule(1e-3, HAND_STEPS))
     )
@@ -389,7 +405,7 @@ def compare_hand_written():
         pool = trajectories_for(angles, 2, k_train, HAND_TRAJECTORIES, (HAND_SAMPLES - 1) * DT)
         test = trajectories_for(angles, 2, k_test, HELD_OUT, T_TEST)
         true_accelerations = np.asarray(jll.state_data(angles, test).qdd)
-        for name, form, targets in HAND_CONTENDERS:
+        for name, form, targets in contenders:
             data = cartesian_data(pool) if form == "CLNN" else pool
             states = jll.state_data(cartesian if form == "CLNN" else angles, data)
             model = hand_model(name, jax.random.PRNGKey(1000 + seed))
@@ -402,14 +418,36 @@ def compare_hand_written():
             ok = np.all(np.isfinite(predicted), axis=1)
             rms = float(np.sqrt(np.mean((predicted[ok] - true_accelerations[ok]) ** 2)))
             rows.append(
-                {"seed": seed, "name": name, "targets": targets, "rms": rms, "failed": int(np.sum(~ok))}
+                {
+                    "seed": seed,
+                    "name": name,
+                    "targets": targets,
+                    "steps": HAND_STEPS,
+                    "rms": rms,
+                    "failed": int(np.sum(~ok)),
+                }
             )
+            if not QUICK:
+                _save_hand_rows(rows)
             print(
                 f"[{time.perf_counter() - started:7.1f}s] seed {seed} {name:26s} {targets:8s} "
                 f"θ̈ RMS {rms:.4g} failed {int(np.sum(~ok))} train {seconds:.0f}s",
                 flush=True,
             )
-    write_hand_written_report(rows)
+    write_hand_written_report(_save_hand_rows(rows) if not QUICK else rows)
+
+
+def _save_hand_rows(rows):
+    """Merge ``rows`` into those saved in HAND_ROWS (replacing the same seed and contender, dropping
+    rows of another HAND_STEPS) and save; returns the merged rows."""
+    saved = json.loads(HAND_ROWS.read_text()) if HAND_ROWS.exists() else []
+    done = {(r["seed"], r["name"], r["targets"]) for r in rows}
+    kept = [
+        r for r in saved if r.get("steps") == HAND_STEPS and (r["seed"], r["name"], r["targets"]) not in done
+    ]
+    merged = kept + list(rows)
+    HAND_ROWS.write_text(json.dumps(merged))
+    return merged
 
 
 def write_hand_written_report(rows):
@@ -424,11 +462,22 @@ def write_hand_written_report(rows):
         f"decay from 1e-3, {HAND_STEPS} full-batch steps, the same initial key for every contender. θ̈ RMS "
         f"(rad/s²) on the {HELD_OUT} held-out 4 s trajectories of each seed. Targets: *scaled*, every "
         "coordinate divided by its standard deviation (the library's advice before); *library*, "
-        "`jll.Recipe().loss(states)`; *raw*, `jll.AccelerationLoss()`.",
+        "`jll.Recipe().loss(states)`; *raw*, `jll.AccelerationLoss()`. A library model and the "
+        "hand-written one of its form compute the same function from the same initial weights: on "
+        "the same targets they differ only by floating-point rounding, grown through the training.",
         "",
         "| model | targets | " + " | ".join(f"seed {seed}" for seed in SEEDS) + " |",
         "|---|---|" + "---|" * len(SEEDS),
     ]
+    missing = [
+        f"seed {seed} {name}:{targets}"
+        for name, _, targets in HAND_CONTENDERS
+        for seed in SEEDS
+        if not any(r["seed"] == seed and r["name"] == name and r["targets"] == targets for r in rows)
+    ]
+    if missing:
+        print(f"not writing RESULTS_learned.md: no rows (of {HAND_STEPS} steps) for {', '.join(missing)}")
+        return
     for name, _, targets in HAND_CONTENDERS:
         cells = []
         for seed in SEEDS:
@@ -707,7 +756,11 @@ def plot(summary):
 
 
 if __name__ == "__main__":
-    if "--report" in sys.argv:  # rebuild the table and the plot from the saved runs
+    if "--hand-written" in sys.argv and "--report" in sys.argv:  # rebuild from HAND_ROWS
+        write_hand_written_report(
+            [r for r in json.loads(HAND_ROWS.read_text()) if r.get("steps") == HAND_STEPS]
+        )
+    elif "--report" in sys.argv:  # rebuild the table and the plot from the saved runs
         write_report(json.loads(ROWS.read_text()))
     elif "--recipes" in sys.argv:  # a plain recipe against the defaults
         compare_recipes()

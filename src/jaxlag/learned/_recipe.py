@@ -99,9 +99,9 @@ class Recipe(eqx.Module):
         Dividing by ``σ`` itself would also shrink the loss, and its gradient, by ``rms(σ)²``:
         on the Cartesian accelerations of a double pendulum (``rms(σ)`` ≈ 6 m/s²) the gradient
         of a constrained Lagrangian fell from 11 to 0.27 at the first step, below a gradient clip
-        at norm 1 that then never acted, and adam left it 2.4–3.4× worse on held-out
-        accelerations (θ̈ RMS 0.017 and 0.019 against 0.0050 and 0.0081 rad/s², two seeds, 1000
-        steps; ``benchmarks/RESULTS_learned.md``).
+        at norm 1 that then never acted, and adam left it 1.4–1.6× worse on held-out
+        accelerations (θ̈ RMS 0.0063 and 0.0104 against 0.0046 and 0.0067 rad/s², two seeds,
+        2000 steps; 2.4–3.4× after 1000; ``benchmarks/RESULTS_learned.md``).
         """
         return AccelerationLoss(scale=balanced_scale(states.qdd))
 
