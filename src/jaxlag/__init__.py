@@ -94,6 +94,12 @@ from ._fit.options import (
     Shooting as Shooting,
 )
 from ._fit.statistics import FitResult as FitResult
+from ._mechanics.dynamics import (
+    AbstractDynamics as AbstractDynamics,
+)
+from ._mechanics.dynamics import (
+    AutodiffDynamics as AutodiffDynamics,
+)
 from ._mechanics.friction import Coulomb as Coulomb
 from ._mechanics.impacts import Unilateral as Unilateral
 from ._mechanics.mass_solve import (

@@ -21,6 +21,7 @@ from ._mechanics import constraints as _constraints
 from ._mechanics import kkt as _kkt
 from ._mechanics import lagrangian as _mechanics
 from ._mechanics.constant_mass import ConstantMass
+from ._mechanics.dynamics import AbstractDynamics, AutodiffDynamics
 from ._mechanics.friction import Coulomb, as_friction
 from ._mechanics.impacts import Unilateral, as_unilateral
 from ._mechanics.mass_solve import AbstractMassSolve, CheckedCholesky
@@ -63,6 +64,14 @@ class System(eqx.Module):
       for learned Lagrangians: such a state gives NaN accelerations and multipliers for that
       state alone (under ``vmap``, one member), never an error, with a zero gradient; count them
       with ``jnp.isnan(qdd).any(-1).sum()``.
+    - ``dynamics``: where ``M`` and the Lagrangian forces
+      ``F_L = ∂L/∂q − (∂²L/∂q̇∂q) q̇ − ∂²L/∂q̇∂t`` of the equations of motion come from, an
+      [`AbstractDynamics`][jaxlag.AbstractDynamics]. ``jl.AutodiffDynamics()`` (default):
+      automatic differentiation of ``L``. Another implementation computes the same ``M`` and
+      ``F_L`` of the same ``L`` faster (a kinematic tree's recursive algorithms,
+      [`jaxlag.robots.TreeDynamics`][jaxlag.robots.TreeDynamics]); the dissipation, ``forces``
+      and ``actuation`` are added to its ``F_L`` as to the default's, and momenta, energy and
+      the variational integrator still come from ``L``.
     - ``unilateral``: indices of holonomic constraints that are one-sided, ``f_i(q, t) ≥ 0``
       with ``λ_i ≥ 0`` while in contact (a particle on the outside of a sphere ``r − R ≥ 0``,
       a string ``l − r ≥ 0``). [`simulate`][jaxlag.simulate] releases such a constraint when its
@@ -88,6 +97,7 @@ class System(eqx.Module):
     unilateral: tuple[int, ...] = eqx.field(static=True)
     diagonal_mass: bool = eqx.field(static=True)
     mass_solve: AbstractMassSolve = CheckedCholesky()
+    dynamics: AbstractDynamics = AutodiffDynamics()
     # Set by simulate while tracing when M does not depend on the state (jaxlag._mechanics.constant_mass).
     constant_mass: ConstantMass | None = None
     # The impact law of the unilateral constraints (restitution); None: plastic (jaxlag._mechanics.impacts).
@@ -110,6 +120,7 @@ class System(eqx.Module):
         diagonal_mass: bool = False,
         mass_solve: Validated[AbstractMassSolve] = CheckedCholesky(),
         friction: Validated[Coulomb | Sequence[Coulomb] | None] = None,
+        dynamics: Validated[AbstractDynamics] = AutodiffDynamics(),
     ):
         self.lagrangian = wrap_state_function(lagrangian, "lagrangian")
         self.holonomic = wrap_configuration_function(holonomic, "holonomic constraint function")
@@ -128,6 +139,12 @@ class System(eqx.Module):
                 f"{type(mass_solve).__name__}."
             )
         self.mass_solve = mass_solve
+        if not isinstance(dynamics, AbstractDynamics):
+            raise TypeError(
+                "dynamics must be a jl.AbstractDynamics (jl.AutodiffDynamics(), or e.g. "
+                f"jaxlag.robots.TreeDynamics(tree)); got {type(dynamics).__name__}."
+            )
+        self.dynamics = dynamics
         self.constant_mass = None
         law = as_unilateral(unilateral)
         self.unilateral = law.indices
@@ -281,7 +298,7 @@ class System(eqx.Module):
     def mass_matrix(
         self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
     ) -> Matrix:
-        """``M = ∂²L/∂q̇²``, shape (n, n)."""
+        """``M = ∂²L/∂q̇²``, shape (n, n) (from the system's ``dynamics``)."""
         return self._at_state(_mechanics.mass_matrix, q, qd, t, args)
 
     def generalized_forces(

@@ -27,7 +27,7 @@ import numpy as np
 from .. import _compile as compilation
 from .._tolerances import MASS_RCOND
 from .dependence import may_depend
-from .lagrangian import mass_along, mass_matrix
+from .lagrangian import mass_matrix
 from .linalg import solve_spd
 
 
@@ -51,9 +51,10 @@ class ConstantMass(eqx.Module):
 
 
 def _mass(q, qd, t, args, system):
-    """``M(q, q̇, t)`` with a plain identity basis: the hot path's basis is built from ``q̇`` (so
-    XLA cannot hoist it), which would make every ``M`` look velocity-dependent here."""
-    return mass_along(system, q, qd, t, args, jnp.eye(q.shape[0], dtype=qd.dtype))
+    """``M(q, q̇, t)`` from the system's dynamics, written for the analysis (the autodiff hot
+    path's basis is built from ``q̇`` so XLA cannot hoist it, which would make every ``M`` look
+    velocity-dependent here: `AbstractDynamics.dependence_mass`)."""
+    return system.dynamics.dependence_mass(system, q, qd, t, args)
 
 
 _mass_program = compilation.filter_jit(_mass)

@@ -60,19 +60,21 @@ def _velocity_terms(system, q, qd, t, args):
 def lagrangian_terms(system, q, qd, t, args):
     """Return ``(p, M, F_L)``: momenta, mass matrix, and the Lagrangian part of ``F``.
 
-    ``F_L = ∂L/∂q − (∂p/∂q) q̇ − ∂p/∂t`` (without dissipation or external forces). One ``jvp`` of
-    the gradient along ``(q̇, 0, 1)`` in ``(q, q̇, t)`` gives ``∂L/∂q``, ``p`` and the velocity
-    terms; n ``jvp``s of ``p`` along the unit directions in ``q̇`` alone give ``M``, with the ``q``
-    tangents symbolically zero, so what depends on ``q`` only (an explicit ``M(q)`` in
-    ``½q̇ᵀM(q)q̇``) is not pushed forward n times. A system carrying a
-    `ConstantMass` skips those n products.
+    ``F_L = ∂L/∂q − (∂p/∂q) q̇ − ∂p/∂t`` (without dissipation or external forces), ``M`` and
+    ``F_L`` from the system's ``dynamics`` (`jaxlag._mechanics.dynamics`; by default one ``jvp``
+    of the gradient along ``(q̇, 0, 1)`` and n ``jvp``s of ``p`` in ``q̇`` alone). A system
+    carrying a `ConstantMass` skips ``M``.
     """
     t = as_time(t, q)
-    dL_dq, p, dp_motion = _velocity_terms(system, q, qd, t, args)
-    if system.constant_mass is not None:
-        return p, system.constant_mass.matrix, dL_dq - dp_motion
+    mass, force = _mass_and_lagrangian_forces(system, q, qd, t, args)
+    return jax.grad(lambda v: system.lagrangian(q, v, t=t, args=args))(qd), mass, force
 
-    return p, mass_along(system, q, qd, t, args, _unit_basis(qd)), dL_dq - dp_motion
+
+def _mass_and_lagrangian_forces(system, q, qd, t, args):
+    """``(M, F_L)`` from the system's dynamics (``t`` already an array)."""
+    if system.constant_mass is not None:
+        return system.constant_mass.matrix, system.dynamics.forces(system, q, qd, t, args)
+    return system.dynamics.mass_and_forces(system, q, qd, t, args)
 
 
 def mass_along(system, q, qd, t, args, basis):
@@ -124,15 +126,17 @@ def actuation_forces(system, q, qd, t, args, u=None):
 
 
 def mass_matrix(system, q, qd, t: ArrayLike = 0.0, args=None):
-    """``M = ∂²L/∂q̇²``, shape (n, n)."""
+    """``M = ∂²L/∂q̇²``, shape (n, n), from the system's ``dynamics``."""
     if system.constant_mass is not None:
         return jnp.asarray(system.constant_mass.matrix, dtype=q.dtype)
-    return mass_along(system, q, qd, as_time(t, q), args, _unit_basis(qd))
+    return system.dynamics.mass_matrix(system, q, qd, as_time(t, q), args)
 
 
 def mass_and_forces(system, q, qd, t, args):
-    """``(M, F)`` of ``M q̈ = F`` with every generalized force included."""
-    _, mass, force = lagrangian_terms(system, q, qd, t, args)
+    """``(M, F)`` of ``M q̈ = F`` with every generalized force included: ``M`` and ``F_L`` from
+    the system's ``dynamics``, ``Qⁿᶜ`` from its dissipation, forces and actuation."""
+    t = as_time(t, q)
+    mass, force = _mass_and_lagrangian_forces(system, q, qd, t, args)
     return mass, force + nonconservative_forces(system, q, qd, t, args)
 
 

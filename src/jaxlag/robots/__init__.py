@@ -20,7 +20,8 @@ velocity of the link's origin, then the angular velocity in the link's frame); s
 Reading files needs MuJoCo's model compiler, the ``robots`` extra (``pip install
 "jaxlag[robots]"``); nothing else here does. Every function is differentiable and works under
 ``jit`` and ``vmap``; the inertial parameters are arrays of the tree. `system` turns the tree
-into a [`jaxlag.System`][jaxlag.System] (``L = T − V``, quaternions with ``|Q|² = 1``).
+into a [`jaxlag.System`][jaxlag.System] (``L = T − V``, quaternions with ``|Q|² = 1``), whose
+``M`` and forces come from these recursive algorithms (`TreeDynamics`) for hinges and slides.
 """
 
 from ._aba import forward_dynamics as forward_dynamics
@@ -28,6 +29,7 @@ from ._crba import mass_matrix as mass_matrix
 from ._kinematics import LinkPoses as LinkPoses
 from ._kinematics import configuration_rate as configuration_rate
 from ._kinematics import forward_kinematics as forward_kinematics
+from ._lagrangian import TreeDynamics as TreeDynamics
 from ._lagrangian import system as system
 from ._load import from_mujoco as from_mujoco
 from ._load import load as load
@@ -38,6 +40,7 @@ from ._tree import KinematicTree as KinematicTree
 __all__ = [
     "KinematicTree",
     "LinkPoses",
+    "TreeDynamics",
     "bias_forces",
     "configuration_rate",
     "forward_dynamics",

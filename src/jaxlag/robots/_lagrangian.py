@@ -9,14 +9,19 @@ that constraint's motions, is added so that ``M = ∂²L/∂q̇²`` stays positi
 direction the constraint removes; it changes the multiplier, not the motion.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._custom_types import Args
+from .._mechanics.dynamics import AbstractDynamics, AutodiffDynamics
 from .._mechanics.impacts import Unilateral
 from .._system import System
+from ._crba import mass_matrix as tree_mass_matrix
 from ._kinematics import world_motion
+from ._rnea import bias_forces
 from ._spatial import spatial_inertia
 from ._tree import KinematicTree, joint_motion, layout
 
@@ -79,7 +84,65 @@ def potential_energy(tree: KinematicTree, q: Array) -> Array:
     return -jnp.sum(tree.mass * (centres @ tree.gravity))
 
 
-def system(tree: KinematicTree, *, limits: bool = True, restitution: float = 0.0) -> System:
+def recursive(tree: KinematicTree) -> bool:
+    """Whether the tree's ``q̇`` is its velocity ``v`` (hinges, slides and fixed links only)."""
+    return all(kind in ("hinge", "slide", "fixed") for kind in tree.joint_types)
+
+
+class TreeDynamics(AbstractDynamics):
+    r"""``M`` and the Lagrangian forces of a tree of hinges and slides by its recursive algorithms.
+
+    For ``L = T − V`` of the tree (`system`), with ``q̇ = v``:
+    ``M = ∂²L/∂q̇²`` is the composite-rigid-body mass matrix
+    [`mass_matrix`][jaxlag.robots.mass_matrix] (armature on the diagonal), and
+    ``F_L = ∂L/∂q − (∂²L/∂q̇∂q) q̇ = −(C(q, q̇) q̇ + g(q))``, minus Newton–Euler's
+    [`bias_forces`][jaxlag.robots.bias_forces]. Joint damping and motors stay the system's
+    dissipation and actuation, added by jaxlag as for any ``L`` (``M q̈ = F_L − damping · q̇ + B u
+    + Jᵀλ``). Both cost ``O(links²)`` multiply-adds in a program that does not grow with the
+    links, instead of the ``n`` gradients of ``L`` of automatic differentiation.
+
+    ``tree`` is used when ``args`` is ``None``; otherwise ``args`` is the tree (its inertial
+    parameters differentiable), as for the system's ``L``. Ball and free joints (``q̇ ≠ v``) are
+    refused: their systems keep [`jl.AutodiffDynamics`][jaxlag.AutodiffDynamics].
+    """
+
+    tree: KinematicTree
+
+    def __check_init__(self):
+        if not recursive(self.tree):
+            raise ValueError(
+                "TreeDynamics takes trees of hinge and slide joints only (q̇ = v); this one has "
+                f"{sorted(set(self.tree.joint_types) - {'hinge', 'slide', 'fixed'})} joints, whose "
+                "quaternion rates are not their velocities: keep jl.AutodiffDynamics()."
+            )
+
+    def _robot(self, args: Args) -> KinematicTree:
+        return self.tree if args is None else args
+
+    def mass_matrix(
+        self,
+        system: eqx.Module,
+        q: Float[Array, " n"],
+        qd: Float[Array, " n"],
+        t: Float[Array, ""],
+        args: Args,
+    ) -> Float[Array, "n n"]:
+        return tree_mass_matrix(self._robot(args), q)
+
+    def forces(
+        self,
+        system: eqx.Module,
+        q: Float[Array, " n"],
+        qd: Float[Array, " n"],
+        t: Float[Array, ""],
+        args: Args,
+    ) -> Float[Array, " n"]:
+        return -bias_forces(self._robot(args), q, qd)
+
+
+def system(
+    tree: KinematicTree, *, limits: bool = True, restitution: float = 0.0, recursive_dynamics: bool = True
+) -> System:
     r"""The tree as a [`jaxlag.System`][jaxlag.System], so that [`jaxlag.simulate`][jaxlag.simulate],
     constraints, events, [`jaxlag.analysis.linearize`][jaxlag.analysis.linearize] and
     [`jaxlag.fit`][jaxlag.fit] apply to it.
@@ -99,9 +162,14 @@ def system(tree: KinematicTree, *, limits: bool = True, restitution: float = 0.0
     centres of mass, inertias, gravity, damping and armature are differentiable inputs:
     ``jl.simulate(sys, q0, qd0, ts, args=eqx.tree_at(lambda t: t.mass, tree, masses))``.
 
-    The dynamics are jaxlag's: ``M = ∂²L/∂q̇²`` and ``F`` by automatic differentiation of ``L``
-    (the recursive algorithms of this module compute the same ``M`` and forces, and are checked
-    against it in the tests).
+    The equations of motion are jaxlag's, ``M q̈ = F + Jᵀλ``. With ``recursive_dynamics=True``
+    (default) and a tree of hinges and slides only, ``M`` and the forces of ``L`` come from the
+    tree's recursive algorithms ([`TreeDynamics`][jaxlag.robots.TreeDynamics]: the
+    composite-rigid-body ``M`` and minus Newton–Euler's bias forces), the same quantities as
+    ``M = ∂²L/∂q̇²`` and ``∂L/∂q − (∂²L/∂q̇∂q) q̇`` at a fraction of the cost; with ball or free
+    joints, or ``recursive_dynamics=False``, by automatic differentiation of ``L``
+    ([`jl.AutodiffDynamics`][jaxlag.AutodiffDynamics]). Energy, momenta and everything else
+    come from ``L`` either way.
     """
     if not isinstance(tree, KinematicTree):
         raise TypeError(f"jaxlag.robots.system takes a KinematicTree (jaxlag.robots.load); got {type(tree)}.")
@@ -156,4 +224,5 @@ def system(tree: KinematicTree, *, limits: bool = True, restitution: float = 0.0
         unilateral=Unilateral(one_sided, restitution=restitution) if one_sided else (),
         dissipation=dissipation,
         actuation=actuation if tree.actuation.shape[1] else None,
+        dynamics=TreeDynamics(tree) if recursive_dynamics and recursive(tree) else AutodiffDynamics(),
     )
