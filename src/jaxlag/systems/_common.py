@@ -8,6 +8,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from .._custom_types import Validated
 from .._system import System
+from ..robots._tree import KinematicTree
 
 
 @runtime_checkable
@@ -118,7 +119,7 @@ def check_form(name: str, form: str, allowed: tuple[str, ...]) -> str:
     return form
 
 
-def default_args(factory: Validated[Model]) -> Any:
+def default_args(factory: Validated[Model]) -> dict | KinematicTree:
     """A fresh dict of a model's default parameters (edit it and pass it as ``args``); for the
     robots (`robot_arm`, `space_robot`) their [`KinematicTree`][jaxlag.robots.KinematicTree]
     (immutable: edit it with ``equinox.tree_at``; loading it needs MuJoCo)."""
