@@ -17,7 +17,7 @@ import abc
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from .._custom_types import Args
 from .lagrangian import _unit_basis, _velocity_terms, mass_along
@@ -67,15 +67,15 @@ class AbstractDynamics(eqx.Module):
     def dependence_mass(
         self,
         system: eqx.Module,
-        q: Float[Array, " n"],
-        qd: Float[Array, " n"],
-        t: Float[Array, ""],
+        q: Float[ArrayLike, " n"],  # NumPy zeros too: the analysis evaluates M on the side
+        qd: Float[ArrayLike, " n"],
+        t: Float[ArrayLike, ""],
         args: Args,
     ) -> Float[Array, "n n"]:
         """``M`` as the analysis of the structure of ``M`` reads it (which finds a constant
         ``M`` to invert once): the same values, written so that a ``M`` that does not depend on
         the state does not appear to."""
-        return self.mass_matrix(system, q, qd, t, args)
+        return self.mass_matrix(system, jnp.asarray(q), jnp.asarray(qd), jnp.asarray(t), args)
 
 
 class AutodiffDynamics(AbstractDynamics):
@@ -120,11 +120,11 @@ class AutodiffDynamics(AbstractDynamics):
     def dependence_mass(
         self,
         system: eqx.Module,
-        q: Float[Array, " n"],
-        qd: Float[Array, " n"],
-        t: Float[Array, ""],
+        q: Float[ArrayLike, " n"],  # NumPy zeros too: the analysis evaluates M on the side
+        qd: Float[ArrayLike, " n"],
+        t: Float[ArrayLike, ""],
         args: Args,
     ) -> Float[Array, "n n"]:
         # A plain identity: the hot path's basis is built from q̇ (so XLA cannot hoist it), which
         # would make every M look velocity-dependent.
-        return mass_along(system, q, qd, t, args, jnp.eye(q.shape[0], dtype=qd.dtype))
+        return mass_along(system, q, qd, t, args, jnp.eye(jnp.shape(q)[0], dtype=jnp.result_type(qd)))

@@ -256,6 +256,8 @@ def evaluate(jaxpr: jcore.Jaxpr, consts, *args):
         inner = eqn.params.get("jaxpr", eqn.params.get("call_jaxpr", eqn.params.get("fun_jaxpr")))
         if name in _ELEMENTWISE:
             outs = [_elementwise(eqn.primitive, eqn.params, *operands)]
+        elif name == "device_put":  # a host value placed while tracing: the values themselves
+            outs = list(operands)
         elif name in _STRUCTURAL:
             result = _STRUCTURAL[name](eqn.params, *operands)
             outs = result if isinstance(result, list) else [result]
