@@ -107,16 +107,6 @@ class AutodiffDynamics(AbstractDynamics):
         dL_dq, _, dp_motion = _velocity_terms(system, q, qd, t, args)
         return dL_dq - dp_motion
 
-    def mass_and_forces(
-        self,
-        system: eqx.Module,
-        q: Float[Array, " n"],
-        qd: Float[Array, " n"],
-        t: Float[Array, ""],
-        args: Args,
-    ) -> tuple[Float[Array, "n n"], Float[Array, " n"]]:
-        return self.mass_matrix(system, q, qd, t, args), self.forces(system, q, qd, t, args)
-
     def dependence_mass(
         self,
         system: eqx.Module,

@@ -57,19 +57,6 @@ def _velocity_terms(system, q, qd, t, args):
     return dL_dq, p, dp_motion
 
 
-def lagrangian_terms(system, q, qd, t, args):
-    """Return ``(p, M, F_L)``: momenta, mass matrix, and the Lagrangian part of ``F``.
-
-    ``F_L = ∂L/∂q − (∂p/∂q) q̇ − ∂p/∂t`` (without dissipation or external forces), ``M`` and
-    ``F_L`` from the system's ``dynamics`` (`jaxlag._mechanics.dynamics`; by default one ``jvp``
-    of the gradient along ``(q̇, 0, 1)`` and n ``jvp``s of ``p`` in ``q̇`` alone). A system
-    carrying a `ConstantMass` skips ``M``.
-    """
-    t = as_time(t, q)
-    mass, force = _mass_and_lagrangian_forces(system, q, qd, t, args)
-    return jax.grad(lambda v: system.lagrangian(q, v, t=t, args=args))(qd), mass, force
-
-
 def _mass_and_lagrangian_forces(system, q, qd, t, args):
     """``(M, F_L)`` from the system's dynamics (``t`` already an array)."""
     if system.constant_mass is not None:
