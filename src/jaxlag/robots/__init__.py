@@ -21,7 +21,7 @@ Reading files needs MuJoCo's model compiler, the ``robots`` extra (``pip install
 "jaxlag[robots]"``); nothing else here does. Every function is differentiable and works under
 ``jit`` and ``vmap``; the inertial parameters are arrays of the tree. `system` turns the tree
 into a [`jaxlag.System`][jaxlag.System] (``L = T − V``, quaternions with ``|Q|² = 1``), whose
-``M`` and forces come from these recursive algorithms (`TreeDynamics`) for hinges and slides.
+``M`` and forces come from these recursive algorithms (`TreeDynamics`).
 """
 
 from ._aba import forward_dynamics as forward_dynamics

@@ -21,7 +21,7 @@ from .._mechanics.impacts import Unilateral
 from .._system import System
 from ._crba import mass_matrix as tree_mass_matrix
 from ._kinematics import world_motion
-from ._rnea import bias_forces
+from ._rnea import bias_forces, inverse_dynamics
 from ._spatial import spatial_inertia
 from ._tree import KinematicTree, joint_motion, layout
 
@@ -34,6 +34,17 @@ def _quaternion_blocks(tree: KinematicTree) -> np.ndarray:
         if kind in ("ball", "free")
     ]
     return np.asarray(starts, dtype=np.int32).reshape(-1, 1) + np.arange(4, dtype=np.int32)
+
+
+def _angular_blocks(tree: KinematicTree) -> np.ndarray:
+    """The ``v`` indices of every ball's and free joint's angular velocity, shape ``(k, 3)``,
+    in the order of `_quaternion_blocks`."""
+    starts = [
+        tree.v_addresses[i] + (3 if kind == "free" else 0)
+        for i, kind in enumerate(tree.joint_types)
+        if kind in ("ball", "free")
+    ]
+    return np.asarray(starts, dtype=np.int32).reshape(-1, 1) + np.arange(3, dtype=np.int32)
 
 
 def tree_velocity(tree: KinematicTree, q: Array, qd: Array) -> Array:
@@ -84,40 +95,80 @@ def potential_energy(tree: KinematicTree, q: Array) -> Array:
     return -jnp.sum(tree.mass * (centres @ tree.gravity))
 
 
-def recursive(tree: KinematicTree) -> bool:
-    """Whether the tree's ``q̇`` is its velocity ``v`` (hinges, slides and fixed links only)."""
-    return all(kind in ("hinge", "slide", "fixed") for kind in tree.joint_types)
+def _velocity_map(tree: KinematicTree, q: Array) -> Array:
+    """``G(q)`` (nv, nq) with ``v = G(q) q̇`` (``v`` is linear in ``q̇``)."""
+    return jax.jacfwd(lambda rate: tree_velocity(tree, q, rate))(jnp.zeros_like(q))
+
+
+def _quaternion_outer(tree: KinematicTree, q: Array) -> Array:
+    r"""``P = Σ Q Qᵀ`` over the tree's quaternion blocks (nq, nq): ``∂²/∂q̇² of ½ Σ (Q·Q̇)²``."""
+    blocks = _quaternion_blocks(tree)
+    quaternions = q[blocks]
+    outer = quaternions[:, :, None] * quaternions[:, None, :]
+    return jnp.zeros((q.shape[0], q.shape[0]), q.dtype).at[blocks[:, :, None], blocks[:, None, :]].add(outer)
+
+
+def _along_quaternions(robot: KinematicTree, q: Array, qd: Array, momentum: Array, forces: Array) -> Array:
+    r"""``forces`` with each quaternion block's component along ``Q`` replaced by that of
+    ``F_L = ∂L/∂q − (∂²L/∂q̇∂q) q̇``, ``Q·F_L = 2 p_ω·ω − |Q|² |Q̇|²``.
+
+    Scaling a quaternion, ``Q → (1 + ε) Q``, leaves its rotation (normalized) and so ``V`` and
+    ``M_v`` alone and scales its ``ω = 2 E(Q) Q̇`` (``E`` is linear in ``Q``): ``Q·∂L/∂q = p_ω·ω +
+    (Q·Q̇)²``, with ``p = M_v v`` the momentum conjugate to ``v``. And for the fixed vector ``d = Q``,
+    ``∂L/∂q̇·d = p·(2 E(Q) d) + (Q·Q̇)(Q·d)``, whose derivative along ``q̇`` (in ``q``, with
+    ``E(Q) Q = 0`` and ``E(Q̇) Q = −E(Q) Q̇``) is ``Q·(∂²L/∂q̇∂q) q̇ = −p_ω·ω + |Q̇|²|Q|² + (Q·Q̇)²``.
+    """
+    blocks = _quaternion_blocks(robot)
+    angular = _angular_blocks(robot)
+    quaternion, rate = q[blocks], qd[blocks]
+    v = tree_velocity(robot, q, qd)
+    norms = jnp.sum(quaternion**2, axis=-1)
+    exact = 2 * jnp.sum(momentum[angular] * v[angular], axis=-1) - norms * jnp.sum(rate**2, axis=-1)
+    current = jnp.sum(quaternion * forces[blocks], axis=-1)
+    correction = (exact - current) / norms
+    return forces.at[blocks].add(correction[:, None] * quaternion)
 
 
 class TreeDynamics(AbstractDynamics):
-    r"""``M`` and the Lagrangian forces of a tree of hinges and slides by its recursive algorithms.
+    r"""``M`` and the Lagrangian forces of a kinematic tree by its recursive algorithms.
 
-    For ``L = T − V`` of the tree (`system`), with ``q̇ = v``:
-    ``M = ∂²L/∂q̇²`` is the composite-rigid-body mass matrix
-    [`mass_matrix`][jaxlag.robots.mass_matrix] (armature on the diagonal), and
-    ``F_L = ∂L/∂q − (∂²L/∂q̇∂q) q̇ = −(C(q, q̇) q̇ + g(q))``, minus Newton–Euler's
-    [`bias_forces`][jaxlag.robots.bias_forces]. Joint damping and motors stay the system's
-    dissipation and actuation, added by jaxlag as for any ``L`` (``M q̈ = F_L − damping · q̇ + B u
-    + Jᵀλ``). Both cost ``O(links²)`` multiply-adds in a program that does not grow with the
-    links, instead of the ``n`` gradients of ``L`` of automatic differentiation.
+    For ``L = T − V`` of the tree (`system`), whose velocity ``v = G(q) q̇`` is linear in ``q̇``
+    (``G = I`` for hinges and slides; ``ω = 2 E(Q) Q̇``, ``E(Q) = [−x, w I − [x]×]``, for a ball's
+    or a free joint's quaternion ``Q = (w, x)``):
+
+    * ``M = ∂²L/∂q̇² = Gᵀ M_v(q) G + Σ Q Qᵀ``, with ``M_v`` the composite-rigid-body mass matrix
+      [`mass_matrix`][jaxlag.robots.mass_matrix] (armature on the diagonal) and ``Q Qᵀ`` from
+      the ``½ (Q·Q̇)²`` of each quaternion;
+    * ``F_L = −Gᵀ (C(q, v) v + g(q) + M_v Ġ q̇)``: Newton–Euler's
+      [`inverse_dynamics`][jaxlag.robots.inverse_dynamics] at the acceleration ``v̇ = Ġ q̇`` that
+      the map contributes (zero for hinges and slides, where ``F_L`` is minus the
+      [`bias_forces`][jaxlag.robots.bias_forces]).
+
+    For hinges and slides these are exactly ``∂²L/∂q̇²`` and ``∂L/∂q − (∂²L/∂q̇∂q) q̇`` of the
+    tree's ``L``. With quaternions the recursive ``F_L`` is that of ``L`` up to a multiple of ``Q``
+    on each quaternion block (the direction of the row ``|Q|² − 1 = 0``, which the KKT solve
+    absorbs into that row's multiplier: ``q̈`` is ``d/dt`` of
+    [`configuration_rate`][jaxlag.robots.configuration_rate] along the articulated-body
+    acceleration either way, ``G q̈ = v̇ − Ġ q̇`` and ``Q·Q̈ = −|Q̇|²``); that component is set to
+    ``L``'s own, ``Q·F_L = 2 p_ω·ω − |Q|²|Q̇|²`` (``p = M_v v``), so that ``F_L`` and every
+    multiplier are those of ``L``.
+
+    Joint damping and motors stay the system's dissipation and actuation, added by jaxlag as for
+    any ``L`` (``M q̈ = F_L − Gᵀ damping · v + Gᵀ B u + Jᵀλ``). Both cost ``O(links²)``
+    multiply-adds in a program that does not grow with the links, instead of the ``n`` gradients
+    of ``L`` of automatic differentiation.
 
     ``tree`` is used when ``args`` is ``None``; otherwise ``args`` is the tree (its inertial
-    parameters differentiable), as for the system's ``L``. Ball and free joints (``q̇ ≠ v``) are
-    refused: their systems keep [`jl.AutodiffDynamics`][jaxlag.AutodiffDynamics].
+    parameters differentiable), as for the system's ``L``.
     """
 
     tree: KinematicTree
 
-    def __check_init__(self):
-        if not recursive(self.tree):
-            raise ValueError(
-                "TreeDynamics takes trees of hinge and slide joints only (q̇ = v); this one has "
-                f"{sorted(set(self.tree.joint_types) - {'hinge', 'slide', 'fixed'})} joints, whose "
-                "quaternion rates are not their velocities: keep jl.AutodiffDynamics()."
-            )
-
     def _robot(self, args: Args) -> KinematicTree:
         return self.tree if args is None else args
+
+    def _quaternions(self) -> bool:
+        return any(kind in ("ball", "free") for kind in self.tree.joint_types)
 
     def mass_matrix(
         self,
@@ -127,7 +178,7 @@ class TreeDynamics(AbstractDynamics):
         t: Float[Array, ""],
         args: Args,
     ) -> Float[Array, "n n"]:
-        return tree_mass_matrix(self._robot(args), q)
+        return self.mass_and_forces(system, q, qd, t, args)[0]
 
     def forces(
         self,
@@ -137,7 +188,29 @@ class TreeDynamics(AbstractDynamics):
         t: Float[Array, ""],
         args: Args,
     ) -> Float[Array, " n"]:
-        return -bias_forces(self._robot(args), q, qd)
+        robot = self._robot(args)
+        if not self._quaternions():
+            return -bias_forces(robot, q, qd)
+        return self.mass_and_forces(system, q, qd, t, args)[1]
+
+    def mass_and_forces(
+        self,
+        system: eqx.Module,
+        q: Float[Array, " n"],
+        qd: Float[Array, " n"],
+        t: Float[Array, ""],
+        args: Args,
+    ) -> tuple[Float[Array, "n n"], Float[Array, " n"]]:
+        robot = self._robot(args)
+        mass = tree_mass_matrix(robot, q)
+        if not self._quaternions():
+            return mass, -bias_forces(robot, q, qd)
+        g = _velocity_map(robot, q)
+        v, map_acceleration = jax.jvp(lambda x: tree_velocity(robot, x, qd), (q,), (qd,))
+        # C v + g + M_v Ġq̇ (armature included in M_v, damping left to the system's dissipation)
+        joint_forces = inverse_dynamics(robot, q, v, map_acceleration) - robot.damping * v
+        forces = _along_quaternions(robot, q, qd, mass @ v, -(g.T @ joint_forces))
+        return g.T @ mass @ g + _quaternion_outer(robot, q), forces
 
 
 def system(
@@ -163,13 +236,12 @@ def system(
     ``jl.simulate(sys, q0, qd0, ts, args=eqx.tree_at(lambda t: t.mass, tree, masses))``.
 
     The equations of motion are jaxlag's, ``M q̈ = F + Jᵀλ``. With ``recursive_dynamics=True``
-    (default) and a tree of hinges and slides only, ``M`` and the forces of ``L`` come from the
-    tree's recursive algorithms ([`TreeDynamics`][jaxlag.robots.TreeDynamics]: the
-    composite-rigid-body ``M`` and minus Newton–Euler's bias forces), the same quantities as
-    ``M = ∂²L/∂q̇²`` and ``∂L/∂q − (∂²L/∂q̇∂q) q̇`` at a fraction of the cost; with ball or free
-    joints, or ``recursive_dynamics=False``, by automatic differentiation of ``L``
-    ([`jl.AutodiffDynamics`][jaxlag.AutodiffDynamics]). Energy, momenta and everything else
-    come from ``L`` either way.
+    (default), ``M`` and the forces of ``L`` come from the tree's recursive algorithms
+    ([`TreeDynamics`][jaxlag.robots.TreeDynamics]: the composite-rigid-body ``M`` and
+    Newton–Euler, mapped to ``q̇`` for quaternions), the same quantities as ``M = ∂²L/∂q̇²`` and
+    ``∂L/∂q − (∂²L/∂q̇∂q) q̇`` at a fraction of the cost; with ``recursive_dynamics=False``, by
+    automatic differentiation of ``L`` ([`jl.AutodiffDynamics`][jaxlag.AutodiffDynamics]).
+    Energy, momenta and everything else come from ``L`` either way.
     """
     if not isinstance(tree, KinematicTree):
         raise TypeError(f"jaxlag.robots.system takes a KinematicTree (jaxlag.robots.load); got {type(tree)}.")
@@ -224,5 +296,5 @@ def system(
         unilateral=Unilateral(one_sided, restitution=restitution) if one_sided else (),
         dissipation=dissipation,
         actuation=actuation if tree.actuation.shape[1] else None,
-        dynamics=TreeDynamics(tree) if recursive_dynamics and recursive(tree) else AutodiffDynamics(),
+        dynamics=TreeDynamics(tree) if recursive_dynamics else AutodiffDynamics(),
     )
