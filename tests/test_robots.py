@@ -412,6 +412,27 @@ def test_joint_limits_are_one_sided_constraints():
     assert jlr.system(tree, limits=False).holonomic is None
 
 
+def test_ball_joint_limit_is_a_cone_on_the_rotation_angle():
+    """A ball joint limited to 30° (MuJoCo's range: the rotation angle about any axis) swings
+    under gravity onto its cone and stays there (plastic): ``θ = 2 arccos w = 30°`` and the
+    cone's torque ``τ = −λ x/2`` holds gravity's ``m g x cos θ`` about the swing axis."""
+    import jaxlag as jl
+
+    xml = """<mujoco><worldbody><body><joint type="ball" range="0 30" limited="true"/>
+      <inertial pos="0.5 0 0" mass="1" diaginertia="0.01 0.01 0.01"/></body></worldbody></mujoco>"""
+    tree = jlr.load(xml)
+    system = jlr.system(tree)
+    q0 = jnp.array([1.0, 0.0, 0.0, 0.0])
+    traj = jl.simulate(system, q0, jnp.zeros(4), jnp.linspace(0.0, 1.5, 16), events=jl.Events(max_segments=4))
+    assert traj.events is not None and traj.events.kinds()[0] == "contact"
+    quaternion = traj.q[-1]
+    np.testing.assert_allclose(2 * np.arccos(quaternion[0]), np.deg2rad(30.0), atol=1e-9)
+    np.testing.assert_allclose(traj.qd[-1], 0.0, atol=1e-9)
+    torque = -traj.multipliers[-1, 1] * quaternion[1:] / 2
+    np.testing.assert_allclose(torque, [0.0, -9.81 * 0.5 * np.cos(np.deg2rad(30.0)), 0.0], atol=1e-7)
+    assert jlr.system(tree, limits=False).unilateral == ()
+
+
 def test_files_and_wrong_lengths(tmp_path):
     path = tmp_path / "arm.urdf"
     path.write_text(URDF)

@@ -226,7 +226,13 @@ def system(
     * With ``limits=True`` (default), each limited hinge and slide as two one-sided holonomic rows,
       ``q − lower ≥ 0`` and ``upper − q ≥ 0`` (after the quaternion rows), with Newton's
       ``restitution`` at the stops (0: the joint stays at its stop, plastic). Their multipliers are
-      the stops' joint forces. The limits of ball joints (cones) are not imposed.
+      the stops' joint forces.
+    * With ``limits=True``, each limited ball joint's range (MuJoCo's: the angle ``θ`` of its
+      rotation at most ``upper``, any axis) as one one-sided row (after the stops),
+      ``|w|/|Q| − cos(upper/2) ≥ 0`` (``cos(θ/2) = |w|/|Q|``, smooth where the limit acts), with the
+      same restitution. Its multiplier ``λ ≥ 0`` is a force in quaternion coordinates: the cone's
+      torque on the link, in the link's frame, is ``τ = −λ x/2`` for a unit ``Q = (w, x)`` with
+      ``w > 0`` (``|x| = sin(θ/2)``: towards the rotation's undoing).
     * Joint damping as the Rayleigh function ``R = ½ Σ damping_d v_d²``.
     * Motors (``tree.actuation = B``) as the input: ``Q_u = (∂v/∂q̇)ᵀ B u``; give a control law with
       [`System.with_control`][jaxlag.System.with_control].
@@ -255,6 +261,11 @@ def system(
         dtype=np.int32,
     )
     stop_coordinates = np.asarray(tree.q_addresses, dtype=np.int32)[stops]
+    cones = np.asarray(
+        [i for i, kind in enumerate(tree.joint_types) if limits and tree.limited[i] and kind == "ball"],
+        dtype=np.int32,
+    )
+    cone_quaternions = np.asarray(tree.q_addresses, dtype=np.int32)[cones][:, None] + np.arange(4)
 
     def resolve(args) -> KinematicTree:
         return tree if args is None else args
@@ -270,11 +281,14 @@ def system(
     def holonomic(q: Float[Array, " n"], args) -> Float[Array, " k"]:
         robot = resolve(args)
         angles = q[stop_coordinates]
+        cone = q[cone_quaternions]
+        half_angle_cosine = jnp.abs(cone[:, 0]) / jnp.sqrt(jnp.sum(cone**2, axis=-1))
         return jnp.concatenate(
             [
                 jnp.sum(q[quaternions] ** 2, axis=-1) - 1.0,
                 angles - robot.lower[stops],
                 robot.upper[stops] - angles,
+                half_angle_cosine - jnp.cos(0.5 * robot.upper[cones]),
             ]
         )
 
@@ -288,7 +302,7 @@ def system(
         _, pullback = jax.vjp(lambda rate: tree_velocity(robot, q, rate), qd)
         return pullback(force)[0]
 
-    rows = quaternions.shape[0] + 2 * stops.size
+    rows = quaternions.shape[0] + 2 * stops.size + cones.size
     one_sided = tuple(range(quaternions.shape[0], rows))
     return System(
         lagrangian,

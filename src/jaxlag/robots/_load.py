@@ -96,9 +96,9 @@ def from_mujoco(model: Any) -> KinematicTree:
     ``qpos`` and ``qvel`` layout. Refused, by name: equality constraints, tendons, friction loss,
     joint stiffness, gravity compensation, and actuators other than motors on hinges and slides.
     Geoms (contacts) are not imported. Joint limits are kept on the tree (``limited``, ``lower``,
-    ``upper``); [`system`][jaxlag.robots.system] imposes those of hinges and slides as one-sided
-    constraints, while the recursive algorithms ignore them (as MuJoCo's ``qacc`` does away from
-    the limits).
+    ``upper``); [`system`][jaxlag.robots.system] imposes those of hinges, slides and ball joints
+    (a cone on the rotation angle) as one-sided constraints, while the recursive algorithms ignore
+    them (as MuJoCo's ``qacc`` does away from the limits).
     """
     mujoco = _mujoco()
     _refuse(model, mujoco)
