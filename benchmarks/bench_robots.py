@@ -1,6 +1,12 @@
 """Robots (issue 38): the recursive algorithms of ``jaxlag.robots`` against the autodiff path, and
 a batch of arms against MuJoCo's own C loop.
 
+``jlr.system(tree)`` takes its ``M`` and the forces of ``L`` from ``jlr.TreeDynamics`` (composite
+rigid bodies + Newton–Euler, for every tree, ball and free joints included: the *recursive*
+path); ``jlr.system(tree, recursive_dynamics=False)`` forms them by automatic differentiation of
+``L = T − V`` (``jl.AutodiffDynamics``: the *autodiff* path, the only one before). Both are
+measured side by side in the chain and the floating-base parts.
+
 **Chain of N links** (N = 10, 50, 100, 200; a hinge chain generated as MJCF: each link a capsule
 of 0.1 m and 0.1 kg hanging from the previous one, axis y, damping 0.05, contacts off). Every
 contender integrates the same constant-step explicit RK4 (a diffrax ``AbstractERK`` with the
@@ -9,8 +15,12 @@ classical tableau, 4 evaluations of the right-hand side per step), ``STEPS`` ste
 
 * *ABA*: ``diffrax.diffeqsolve`` of ``(q, v) ↦ (v, jlr.forward_dynamics(tree, q, v))``;
 * *CRBA + RNEA, dense solve*: ``jnp.linalg.solve(jlr.mass_matrix, −damping·v − jlr.bias_forces)``;
-* *jl.simulate(jlr.system)*: today's autodiff path, ``M = ∂²L/∂q̇²`` of the tree's ``L = T − V``
-  (default ``checks``, so the initial-state check is compiled in);
+* *jl.simulate(jlr.system)*: the recursive path, ``jl.simulate`` of ``jlr.system(tree)`` (``M`` by
+  composite rigid bodies, the forces by Newton–Euler, then jaxlag's dense solve of ``M q̈ = F``;
+  default ``checks``, so the initial-state check is compiled in);
+* *jl.simulate(jlr.system, autodiff)*: the same with ``jlr.system(tree, recursive_dynamics=False)``,
+  ``M = ∂²L/∂q̇²`` and ``F = ∂L/∂q − (∂²L/∂q̇∂q) q̇`` by automatic differentiation of the tree's
+  ``L = T − V`` (the path every ``jlr.system`` took before ``TreeDynamics``);
 * *jl.System(hand L)*: benchmarks/bench_unconstrained.py's planar chain of unit point masses in
   absolute angles, ``L`` by cumulative sums (a different model with the same N: a cost reference
   of the autodiff path on the smallest hand-written ``L``);
@@ -36,14 +46,31 @@ second (``B × steps / time``):
   step). Its output (every state of every step) is written by the C loop and counted in its time;
 * *vmap(ABA), RK4*: ``jax.vmap`` of the ABA vector field's ``diffrax.diffeqsolve`` (our RK4);
 * *vmap(CRBA + RNEA, dense solve), RK4*;
-* *simulate_batch(jlr.system), RK4*: ``jl.simulate_batch`` of the autodiff path.
+* *simulate_batch(jlr.system), RK4*: ``jl.simulate_batch`` of the recursive path.
 
 The final states of MuJoCo RK4 and ours are compared (the same integrator, so they agree to
 rounding). Ratios are ``state-steps/s of ours / MuJoCo RK4`` in the same rounds, by wall clock
 and by CPU time.
 
-Run: ``python -m benchmarks.bench_robots`` (about 10-20 minutes on the loaded 2-core machine);
-``python -m benchmarks.bench_robots chain`` or ``batch`` for one part.
+**Floating base** (K = 5, 15, 40; generated as MJCF): a free-joint base, a 5 kg box of
+0.4 × 0.2 × 0.1 m, carrying two legs of K hinges each (capsules of 0.1 m and 0.1 kg hanging
+along −z, axes alternating y, x, damping 0.05, contacts off, gravity on), so ``nq = 7 + 2K``
+coordinates (the base position and unit quaternion, then the hinge angles) and ``nv = 6 + 2K``
+velocities. The same RK4, ``STEPS`` steps of ``DT``, from a spinning, translating base with
+swinging legs (``q̇`` from ``v`` by ``jlr.configuration_rate``):
+
+* *jl.simulate(jlr.system)*: the recursive path (``TreeDynamics``: ``M = Gᵀ M_v G + Q Qᵀ`` and the
+  forces by Newton–Euler mapped to ``q̇``), the quaternion's ``|Q|² − 1 = 0`` a holonomic row of
+  jaxlag's KKT solve (and its projection);
+* *jl.simulate(jlr.system, autodiff)*: the same system with ``recursive_dynamics=False``.
+
+First result in a fresh process and per-step cost alternated as in the chain part; the speedup is
+``CPU per step of autodiff / recursive``; the two final states (``q``, ``q̇``) must agree to about
+1e-10, and the base quaternion's ``| |Q| − 1 |`` is reported.
+
+Run: ``python -m benchmarks.bench_robots`` (chain, batch and floating; 20-40 minutes on the
+loaded 2-core machine); ``python -m benchmarks.bench_robots chain``, ``batch`` or ``floating``
+for one part (several may be named).
 """
 
 from __future__ import annotations
@@ -67,6 +94,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 SIZES = (5, 10) if common.QUICK else (10, 50, 100, 200)
+FLOATING_SIZES = (2, 4) if common.QUICK else (5, 15, 40)  # K hinges per leg
 STEPS = 20 if common.QUICK else 100
 DT = 1e-3
 BATCH = 64 if common.QUICK else 1024
@@ -114,6 +142,38 @@ def chain_xml(n: int) -> str:
 def chain_state(n: int):
     i = jnp.arange(n, dtype=jnp.float64)
     return 0.3 * jnp.sin(0.7 * i + 0.4), 0.2 * jnp.cos(1.1 * i)
+
+
+def floating_xml(k: int) -> str:
+    """A free-joint base (a 5 kg box) carrying two legs of ``k`` hinges each (capsules of 0.1 m
+    and 0.1 kg hanging along −z, axes alternating y, x)."""
+
+    def leg(hip: str) -> str:
+        links = []
+        for j in range(k):
+            pos = hip if j == 0 else "0 0 -0.1"
+            axis = "0 1 0" if j % 2 == 0 else "1 0 0"
+            links.append(
+                f'<body pos="{pos}"><joint type="hinge" axis="{axis}" damping="0.05"/>'
+                '<geom type="capsule" fromto="0 0 0 0 0 -0.1" size="0.01" mass="0.1"/>'
+            )
+        return "".join(links) + "</body>" * k
+
+    base = '<body name="base" pos="0 0 1"><freejoint/><geom type="box" size="0.2 0.1 0.05" mass="5"/>'
+    legs = leg("0.15 0 -0.05") + leg("-0.15 0 -0.05")
+    return f"<mujoco>{_NO_CONTACT}<worldbody>{base}{legs}</body></worldbody></mujoco>"
+
+
+def floating_state(tree, k: int):
+    """``(q, q̇)``: the base 1 m up, tilted and spinning, the legs bent and swinging."""
+    import jaxlag.robots as jlr
+
+    i = jnp.arange(2 * k, dtype=jnp.float64)
+    quaternion = jnp.array([0.9, 0.1, 0.2, 0.3])
+    quaternion = quaternion / jnp.linalg.norm(quaternion)
+    q = jnp.concatenate([jnp.array([0.0, 0.0, 1.0]), quaternion, 0.3 * jnp.sin(0.7 * i + 0.4)])
+    v = jnp.concatenate([jnp.array([0.1, -0.2, 0.3, 0.5, -0.3, 0.2]), 0.2 * jnp.cos(1.1 * i)])
+    return q, jlr.configuration_rate(tree, q, v)
 
 
 # ----------------------------------------------------------------------------- RK4
@@ -171,14 +231,18 @@ def simulate_kwargs(steps: int) -> dict:
 
 
 # ----------------------------------------------------------------------------- chain contenders
+RECURSIVE = "jl.simulate(jlr.system)"
+AUTODIFF = "jl.simulate(jlr.system, autodiff)"
 CHAIN_CONTENDERS = (
     "hand M, solve",
     "ABA",
     "CRBA + RNEA, dense solve",
-    "jl.simulate(jlr.system)",
+    RECURSIVE,
+    AUTODIFF,
     "jl.System(hand L)",
 )
 BASELINE = "hand M, solve"
+FLOATING_CONTENDERS = (RECURSIVE, AUTODIFF)
 
 
 def chain_contender(name: str, n: int) -> tuple[Callable, tuple]:
@@ -206,13 +270,36 @@ def chain_contender(name: str, n: int) -> tuple[Callable, tuple]:
             return jnp.linalg.solve(jlr.mass_matrix(tree, q), rhs)
 
         return (lambda q, v: rk4_solve(dense, q, v, STEPS)), (q0, v0)
-    if name == "jl.simulate(jlr.system)":
-        system = jlr.system(tree)
+    if name in (RECURSIVE, AUTODIFF):
+        system = jlr.system(tree, recursive_dynamics=name == RECURSIVE)
         return (lambda q, v: jl.simulate(system, q, v, **simulate_kwargs(STEPS)).q[-1]), (q0, v0)
     raise ValueError(name)
 
 
-def first_result_child(name: str, n: int) -> None:
+def floating_contender(name: str, k: int) -> tuple[Callable, tuple]:
+    """``(solve, args)``: ``solve(q0, q̇0)`` gives the final ``(q, q̇)`` after ``STEPS`` RK4 steps."""
+    import jaxlag as jl
+    import jaxlag.robots as jlr
+
+    if name not in FLOATING_CONTENDERS:
+        raise ValueError(name)
+    tree = jlr.load(floating_xml(k))
+    system = jlr.system(tree, recursive_dynamics=name == RECURSIVE)
+
+    def solve(q, qd):
+        trajectory = jl.simulate(system, q, qd, **simulate_kwargs(STEPS))
+        return trajectory.q[-1], trajectory.qd[-1]
+
+    return solve, floating_state(tree, k)
+
+
+BUILDERS: dict[str, Callable[[str, int], tuple[Callable, tuple]]] = {
+    "chain": chain_contender,
+    "floating": floating_contender,
+}
+
+
+def first_result_child(part: str, name: str, n: int) -> None:
     """In a fresh process: the time to the first result of one contender, as JSON on stdout."""
     events = {"trace": 0.0, "lower": 0.0, "xla": 0.0, "compiles": 0}
     keys = {
@@ -233,7 +320,7 @@ def first_result_child(name: str, n: int) -> None:
     import jaxlag.robots  # noqa: F401
 
     imported, imported_cpu = time.perf_counter(), time.process_time()
-    solve, args = chain_contender(name, n)
+    solve, args = BUILDERS[part](name, n)
     jax.block_until_ready(jax.jit(solve)(*args))
     done, done_cpu = time.perf_counter(), time.process_time()
     row = {
@@ -247,9 +334,9 @@ def first_result_child(name: str, n: int) -> None:
     print("ROW " + json.dumps(row), flush=True)
 
 
-def fresh_first_result(name: str, n: int) -> dict | None:
+def fresh_first_result(name: str, n: int, part: str = "chain") -> dict | None:
     """Run :func:`first_result_child` in a fresh process; ``None`` past ``CAP_S``."""
-    command = [sys.executable, "-m", "benchmarks.bench_robots", "--first", name, str(n)]
+    command = [sys.executable, "-m", "benchmarks.bench_robots", "--first", part, name, str(n)]
     try:
         done = subprocess.run(command, capture_output=True, text=True, timeout=CAP_S, check=False)
     except subprocess.TimeoutExpired:
@@ -258,7 +345,7 @@ def fresh_first_result(name: str, n: int) -> dict | None:
         if line.startswith("ROW "):
             return json.loads(line[4:])
     print(done.stdout[-2000:], done.stderr[-4000:], file=sys.stderr)
-    raise RuntimeError(f"{name} at N = {n} failed in its fresh process")
+    raise RuntimeError(f"{part}: {name} at N = {n} failed in its fresh process")
 
 
 def timed_alternating(calls: dict[str, Callable[[], Any]], repeats: int, min_sample_s: float = 0.2) -> dict:
@@ -290,56 +377,120 @@ def fitted_exponent(ns, costs) -> float:
     return float(slope)
 
 
-def run_chain(repeats: int) -> list[str]:
-    print(f"\n== Chain of N links: {STEPS} RK4 steps of dt = {DT}, fresh process per first result ==")
+def _first_line(name: str, n: int, row: dict, size: str = "N") -> str:
+    return (
+        f"  {size} = {n:3d} {name:34s} first result {row['first_s']:.2f} s wall, "
+        f"{row['first_cpu_s']:.2f} s CPU (trace {row['trace']:.2f}, lower {row['lower']:.2f}, "
+        f"XLA {row['xla']:.2f} s; import {row['import_s']:.2f} s)"
+    )
+
+
+def measure(
+    part: str,
+    contenders: tuple[str, ...],
+    sizes: tuple[int, ...],
+    repeats: int,
+    check: Callable,
+    size: str = "N",
+) -> tuple[dict, dict, dict]:
+    """Each size: every surviving contender's first result in a fresh process, then all of them
+    compiled here and timed alternately. Returns ``(first, per_step, skipped)``: ``first[(name,
+    n)]`` the fresh process's row (``None`` past ``CAP_S``), ``per_step[(name, n)]`` = (wall s, CPU s,
+    half the interquartile range / median) per RK4 step, ``skipped[name]`` the first size left out.
+    ``check(n, finals)`` prints the agreement of the final states (``finals[name]``)."""
     skipped: dict[str, int] = {}
     first: dict[tuple[str, int], dict | None] = {}
     per_step: dict[tuple[str, int], tuple[float, float, float]] = {}
-    finals: dict[int, dict[str, Any]] = {}
-    for n in SIZES:
-        alive = [c for c in CHAIN_CONTENDERS if c not in skipped]
+    build = BUILDERS[part]
+    for n in sizes:
+        alive = [c for c in contenders if c not in skipped]
         for name in alive:
-            row = fresh_first_result(name, n)
+            row = fresh_first_result(name, n, part)
             first[(name, n)] = row
             if row is None:
                 skipped[name] = n
-                print(f"  {name} at N = {n}: no result within {CAP_S:.0f} s, skipped from here on")
+                print(f"  {name} at {size} = {n}: no result within {CAP_S:.0f} s, skipped from here on")
             else:
-                print(
-                    f"  N = {n:3d} {name:26s} first result {row['first_s']:.2f} s wall, "
-                    f"{row['first_cpu_s']:.2f} s CPU (trace {row['trace']:.2f}, lower {row['lower']:.2f}, "
-                    f"XLA {row['xla']:.2f} s; import {row['import_s']:.2f} s)",
-                    flush=True,
-                )
+                print(_first_line(name, n, row, size), flush=True)
         alive = [c for c in alive if c not in skipped]
         calls: dict[str, Callable[[], Any]] = {}
         for name in alive:
-            solve, args = chain_contender(name, n)
+            solve, args = build(name, n)
             compiled = jax.jit(solve).lower(*args).compile()
             calls[name] = lambda compiled=compiled, args=args: compiled(*args)
         samples = timed_alternating(calls, repeats)
-        finals[n] = {name: np.asarray(jax.block_until_ready(call())) for name, call in calls.items()}
+        finals = {
+            name: jax.tree_util.tree_map(np.asarray, jax.block_until_ready(call()))
+            for name, call in calls.items()
+        }
         for name in alive:
             s = samples[name]
             wall, cpu = statistics.median(s["wall"]), statistics.median(s["cpu"])
             iqr = statistics.quantiles(s["wall"], n=4) if len(s["wall"]) >= 4 else [wall, wall, wall]
             per_step[(name, n)] = (wall / STEPS, cpu / STEPS, 0.5 * (iqr[2] - iqr[0]) / wall)
-        aba, dense = finals[n].get("ABA"), finals[n].get("CRBA + RNEA, dense solve")
-        simulated = finals[n].get("jl.simulate(jlr.system)")
-        checks = []
-        if aba is not None and dense is not None:
-            checks.append(f"|ABA − dense| = {np.max(np.abs(aba[0] - dense[0])):.1e}")
-        if aba is not None and simulated is not None:
-            checks.append(f"|ABA − jl.simulate| = {np.max(np.abs(aba[0] - simulated)):.1e}")
-        print(f"  N = {n}: final q agree: {', '.join(checks)}", flush=True)
-        later = [m for m in SIZES if m > n]
+        check(n, finals)
+        later = [m for m in sizes if m > n]
         for name in alive:
             predicted = per_step[(name, n)][0] * STEPS * (later[0] / n) ** 2.5 if later else 0.0
             if predicted > CALL_CAP_S:
                 skipped[name] = later[0]
                 print(
-                    f"  {name}: one call predicted at {predicted:.0f} s at N = {later[0]}, skipped from there"
+                    f"  {name}: one call predicted at {predicted:.0f} s at {size} = {later[0]}, "
+                    "skipped from there"
                 )
+    return first, per_step, skipped
+
+
+def _speedup_rows(sizes, first, per_step) -> list[list]:
+    """Recursive against autodiff at each size: CPU per step, speedup, first result (CPU s)."""
+    rows = []
+    for n in sizes:
+        fast, slow = per_step.get((RECURSIVE, n)), per_step.get((AUTODIFF, n))
+        f_fast, f_slow = first.get((RECURSIVE, n)), first.get((AUTODIFF, n))
+        rows.append(
+            [
+                n,
+                fast[1] * 1e6 if fast else float("nan"),
+                slow[1] * 1e6 if slow else float("nan"),
+                slow[1] / fast[1] if fast and slow else float("nan"),
+                f_fast["first_cpu_s"] if f_fast else float("nan"),
+                f_slow["first_cpu_s"] if f_slow else float("nan"),
+                f_slow["first_cpu_s"] / f_fast["first_cpu_s"] if f_fast and f_slow else float("nan"),
+            ]
+        )
+    return rows
+
+
+SPEEDUP_HEADER = [
+    "N",
+    "recursive CPU µs/step",
+    "autodiff CPU µs/step",
+    "x (autodiff/recursive)",
+    "recursive first CPU s",
+    "autodiff first CPU s",
+    "x first",
+]
+
+
+def run_chain(repeats: int) -> list[str]:
+    print(f"\n== Chain of N links: {STEPS} RK4 steps of dt = {DT}, fresh process per first result ==")
+
+    def check(n: int, finals: dict[str, Any]) -> None:
+        aba, dense = finals.get("ABA"), finals.get("CRBA + RNEA, dense solve")
+        checks = []
+        if aba is not None and dense is not None:
+            checks.append(f"|ABA − dense| = {np.max(np.abs(aba[0] - dense[0])):.1e}")
+        for name in (RECURSIVE, AUTODIFF):
+            simulated = finals.get(name)
+            if aba is not None and simulated is not None:
+                checks.append(f"|ABA − {name}| = {np.max(np.abs(aba[0] - simulated)):.1e}")
+        if RECURSIVE in finals and AUTODIFF in finals:
+            checks.append(
+                f"|recursive − autodiff| = {np.max(np.abs(finals[RECURSIVE] - finals[AUTODIFF])):.1e}"
+            )
+        print(f"  N = {n}: final q agree: {', '.join(checks)}", flush=True)
+
+    first, per_step, skipped = measure("chain", CHAIN_CONTENDERS, SIZES, repeats, check)
 
     rows = []
     for name in CHAIN_CONTENDERS:
@@ -386,6 +537,11 @@ def run_chain(repeats: int) -> list[str]:
         ],
         rows,
     )
+    common.print_table(
+        f"Chain: {RECURSIVE} (recursive) against {AUTODIFF}, same rounds (x = autodiff / recursive, CPU)",
+        SPEEDUP_HEADER,
+        _speedup_rows(SIZES, first, per_step),
+    )
     exponents = []
     for name in CHAIN_CONTENDERS:
         ns = [n for n in SIZES if (name, n) in per_step]
@@ -400,19 +556,118 @@ def run_chain(repeats: int) -> list[str]:
         exponents,
     )
     verdicts = []
-    if ("ABA", 100) in first and first[("ABA", 100)] is not None:
-        f = first[("ABA", 100)]
-        assert f is not None
+    for name in ("ABA", RECURSIVE, AUTODIFF):
+        f = first.get((name, 100))
+        if f is None:
+            continue
         for label, key in (("first result", "first_s"), ("first result (CPU)", "first_cpu_s")):
             ok = f[key] <= FIRST_RESULT_TARGET_S
             verdicts.append(
-                f"{'ok' if ok else 'MISS'}  ABA {label} at N = 100: {f[key]:.2f} s "
+                f"{'ok' if ok else 'MISS'}  {name} {label} at N = 100: {f[key]:.2f} s "
                 f"(target ≤ {FIRST_RESULT_TARGET_S} s)"
             )
-    p_aba = next(row[3] for row in exponents if row[0] == "ABA")
-    verdicts.append(
-        f"{'ok' if p_aba <= 1.2 else 'MISS'}  ABA per step O(N) up to N = {SIZES[-1]}: p = {p_aba:.2f}"
+    for name in ("ABA", RECURSIVE, AUTODIFF):
+        row = next(row for row in exponents if row[0] == name)
+        verdicts.append(
+            f"{'ok' if row[3] <= 1.2 else 'MISS'}  {name} per step O(N) up to N = {SIZES[-1]}: "
+            f"p = {row[3]:.2f} (CPU; {row[4]:.2f} over N ≥ 50)"
+        )
+    return verdicts
+
+
+# ----------------------------------------------------------------------------- floating base
+def run_floating(repeats: int) -> list[str]:
+    print(
+        f"\n== Floating base + two legs of K hinges: {STEPS} RK4 steps of dt = {DT}, "
+        "fresh process per first result =="
     )
+    agreement: dict[int, tuple[float, float, float]] = {}
+
+    def check(k: int, finals: dict[str, Any]) -> None:
+        if RECURSIVE not in finals or AUTODIFF not in finals:
+            return
+        (q_fast, qd_fast), (q_slow, qd_slow) = finals[RECURSIVE], finals[AUTODIFF]
+        dq, dqd = float(np.max(np.abs(q_fast - q_slow))), float(np.max(np.abs(qd_fast - qd_slow)))
+        unit = float(max(abs(np.linalg.norm(q[3:7]) - 1.0) for q in (q_fast, q_slow)))
+        agreement[k] = (dq, dqd, unit)
+        moved = float(np.max(np.abs(q_fast[:3] - np.array([0.0, 0.0, 1.0]))))
+        print(
+            f"  K = {k}: |q recursive − autodiff| = {dq:.1e}, |q̇ …| = {dqd:.1e}, "
+            f"| |Q| − 1 | = {unit:.1e}, base moved {moved:.1e} m",
+            flush=True,
+        )
+
+    first, per_step, skipped = measure("floating", FLOATING_CONTENDERS, FLOATING_SIZES, repeats, check, "K")
+    rows = []
+    for name in FLOATING_CONTENDERS:
+        for k in FLOATING_SIZES:
+            key = (name, k)
+            if key not in per_step:
+                note = f"first result > {CAP_S:.0f} s, skipped" if first.get(key, 0) is None else "skipped"
+                rows.append([name, k, 7 + 2 * k, note, "", "", "", "", ""])
+                continue
+            wall, cpu, spread = per_step[key]
+            f = first[key]
+            assert f is not None
+            rows.append(
+                [
+                    name,
+                    k,
+                    7 + 2 * k,
+                    wall * 1e6,
+                    cpu * 1e6,
+                    spread * 100,
+                    f["first_s"],
+                    f["first_cpu_s"],
+                    f["xla"],
+                ]
+            )
+    common.print_table(
+        f"Floating base, two legs of K hinges (nq = 7 + 2K), {STEPS} RK4 steps (µs per step: wall, CPU; "
+        "first result in a fresh process after the imports)",
+        ["contender", "K", "nq", "µs/step", "CPU µs/step", "iqr ±%", "first s", "first CPU s", "XLA s"],
+        rows,
+    )
+    common.print_table(
+        "Floating base: recursive against autodiff, same rounds (x = autodiff / recursive, CPU; N = K)",
+        SPEEDUP_HEADER,
+        _speedup_rows(FLOATING_SIZES, first, per_step),
+    )
+    common.print_table(
+        "Final states, recursive against autodiff",
+        ["K", "max |Δq|", "max |Δq̇|", "max | |Q| − 1 |"],
+        [[k, f"{a:.1e}", f"{b:.1e}", f"{c:.1e}"] for k, (a, b, c) in agreement.items()],
+    )
+    exponents = []
+    for name in FLOATING_CONTENDERS:
+        ks = [k for k in FLOATING_SIZES if (name, k) in per_step]
+        nq = [7 + 2 * k for k in ks]
+        exponents.append(
+            [name, ",".join(map(str, nq)) or "-", fitted_exponent(nq, [per_step[(name, k)][1] for k in ks])]
+        )
+    common.print_table(
+        "Fitted exponent p of per-step CPU cost ∝ nq^p (least squares on log-log)",
+        ["contender", "nq used", "p (CPU)"],
+        exponents,
+    )
+    verdicts = []
+    speedups = _speedup_rows(FLOATING_SIZES, first, per_step)
+    verdicts.append(
+        "info  floating base, autodiff / recursive CPU per step: "
+        + ", ".join(f"K = {row[0]}: {row[3]:.1f}x" for row in speedups)
+        + "; first result: "
+        + ", ".join(f"{row[6]:.1f}x" for row in speedups)
+    )
+    if agreement:
+        dq = max(a for a, _, _ in agreement.values())
+        dqd = max(b for _, b, _ in agreement.values())
+        unit = max(c for _, _, c in agreement.values())
+        verdicts.append(
+            f"{'ok' if dq <= 1e-10 and dqd <= 1e-9 else 'MISS'}  floating base, recursive against autodiff "
+            f"after {STEPS} steps: max |Δq| = {dq:.1e} (target ≤ 1e-10), max |Δq̇| = {dqd:.1e} (≤ 1e-9), "
+            f"max | |Q| − 1 | = {unit:.1e}"
+        )
+    del skipped
     return verdicts
 
 
@@ -540,9 +795,9 @@ _T_START = time.perf_counter()
 
 def main() -> None:
     if len(sys.argv) >= 2 and sys.argv[1] == "--first":
-        first_result_child(sys.argv[2], int(sys.argv[3]))
+        first_result_child(sys.argv[2], sys.argv[3], int(sys.argv[4]))
         return
-    parts = sys.argv[1:] or ["chain", "batch"]
+    parts = sys.argv[1:] or ["chain", "batch", "floating"]
     print(common.environment_line())
     print(f"load: {os.getloadavg()}")
     verdicts = []
@@ -550,6 +805,8 @@ def main() -> None:
         verdicts += run_chain(common.REPEATS)
     if "batch" in parts:
         verdicts += run_batch(common.REPEATS)
+    if "floating" in parts:
+        verdicts += run_floating(common.REPEATS)
     print()
     for line in verdicts:
         print(line)
