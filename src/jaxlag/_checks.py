@@ -170,9 +170,8 @@ def initial_activity(system, q, qd, t, args, tolerance):
     return active
 
 
-@compilation.filter_jit
-def _diagnostics(system, q, qd, t, args, tolerance, spectra=True):
-    """``(values, failures)`` at the initial state, in one compiled call (one host transfer).
+def _traced_diagnostics(system, q, qd, t, args, tolerance, spectra=True):
+    """``(values, failures)`` at the initial state, traced into the caller's program.
     ``spectra=False``: without the definiteness and rank tests, and without the failures that
     need them (``None``): for `_diagnostics_on_host`, which computes the eigenvalues and
     singular values with NumPy instead."""
@@ -180,6 +179,10 @@ def _diagnostics(system, q, qd, t, args, tolerance, spectra=True):
     if not spectra:
         return values, None
     return values, _failures(values, system.least_squares, tolerance, check_mass=system.mass_solve.checked)
+
+
+#: `_traced_diagnostics` in one compiled call (one host transfer) when called eagerly.
+_diagnostics = compilation.filter_jit(_traced_diagnostics)
 
 
 def _diagnostics_on_host(system, q, qd, t, args, tolerance):
@@ -587,8 +590,12 @@ def validate_initial_state(system, q, qd, t, args, tolerance: float | Float[Arra
 
 def initial_state_diagnostics(system, q, qd, t, args, tolerance):
     """``(values, failures)`` of the initial-state check as values (traceable, no callback):
-    for programs that return their checks to the host (`raise_for_initial_states`)."""
-    d, fail = _diagnostics(system, q, qd, t, args, tolerance)
+    for programs that return their checks to the host (`raise_for_initial_states`).
+
+    Traced into the caller's program, which maps it over the batch: as a jit of its own it would
+    be traced for one member first and that trace batched afterwards, a second pass over every
+    operation (the compiled program is the same: XLA inlines the call)."""
+    d, fail = _traced_diagnostics(system, q, qd, t, args, tolerance)
     own = lagrangian_checks(system).initial_state_diagnostics(system, q, qd, t, args)
     return dict(d, q=q, qd=qd, lagrangian=own), fail
 
