@@ -3,7 +3,7 @@ a batch of arms against MuJoCo's own C loop.
 
 ``jlr.system(tree)`` takes its ``M`` and the forces of ``L`` from ``jlr.TreeDynamics`` (composite
 rigid bodies + Newton–Euler, for every tree, ball and free joints included: the *recursive*
-path); ``jlr.system(tree, recursive_dynamics=False)`` forms them by automatic differentiation of
+path); ``jlr.system(tree, dynamics=jl.AutodiffDynamics())`` forms them by automatic differentiation of
 ``L = T − V`` (``jl.AutodiffDynamics``: the *autodiff* path, the only one before). Both are
 measured side by side in the chain and the floating-base parts.
 
@@ -18,7 +18,7 @@ classical tableau, 4 evaluations of the right-hand side per step), ``STEPS`` ste
 * *jl.simulate(jlr.system)*: the recursive path, ``jl.simulate`` of ``jlr.system(tree)`` (``M`` by
   composite rigid bodies, the forces by Newton–Euler, then jaxlag's dense solve of ``M q̈ = F``;
   default ``checks``, so the initial-state check is compiled in);
-* *jl.simulate(jlr.system, autodiff)*: the same with ``jlr.system(tree, recursive_dynamics=False)``,
+* *jl.simulate(jlr.system, autodiff)*: the same with ``jlr.system(tree, dynamics=jl.AutodiffDynamics())``,
   ``M = ∂²L/∂q̇²`` and ``F = ∂L/∂q − (∂²L/∂q̇∂q) q̇`` by automatic differentiation of the tree's
   ``L = T − V`` (the path every ``jlr.system`` took before ``TreeDynamics``);
 * *jl.System(hand L)*: benchmarks/bench_unconstrained.py's planar chain of unit point masses in
@@ -62,7 +62,7 @@ swinging legs (``q̇`` from ``v`` by ``jlr.configuration_rate``):
 * *jl.simulate(jlr.system)*: the recursive path (``TreeDynamics``: ``M = Gᵀ M_v G + Q Qᵀ`` and the
   forces by Newton–Euler mapped to ``q̇``), the quaternion's ``|Q|² − 1 = 0`` a holonomic row of
   jaxlag's KKT solve (and its projection);
-* *jl.simulate(jlr.system, autodiff)*: the same system with ``recursive_dynamics=False``.
+* *jl.simulate(jlr.system, autodiff)*: the same system with ``dynamics=jl.AutodiffDynamics()``.
 
 First result in a fresh process and per-step cost alternated as in the chain part; the speedup is
 ``CPU per step of autodiff / recursive``; the two final states (``q``, ``q̇``) must agree to about
@@ -271,7 +271,7 @@ def chain_contender(name: str, n: int) -> tuple[Callable, tuple]:
 
         return (lambda q, v: rk4_solve(dense, q, v, STEPS)), (q0, v0)
     if name in (RECURSIVE, AUTODIFF):
-        system = jlr.system(tree, recursive_dynamics=name == RECURSIVE)
+        system = jlr.system(tree, dynamics=None if name == RECURSIVE else jl.AutodiffDynamics())
         return (lambda q, v: jl.simulate(system, q, v, **simulate_kwargs(STEPS)).q[-1]), (q0, v0)
     raise ValueError(name)
 
@@ -284,7 +284,7 @@ def floating_contender(name: str, k: int) -> tuple[Callable, tuple]:
     if name not in FLOATING_CONTENDERS:
         raise ValueError(name)
     tree = jlr.load(floating_xml(k))
-    system = jlr.system(tree, recursive_dynamics=name == RECURSIVE)
+    system = jlr.system(tree, dynamics=None if name == RECURSIVE else jl.AutodiffDynamics())
 
     def solve(q, qd):
         trajectory = jl.simulate(system, q, qd, **simulate_kwargs(STEPS))

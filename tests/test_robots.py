@@ -463,8 +463,10 @@ def test_files_and_wrong_lengths(tmp_path):
 
 def _both_dynamics(tree, control=None):
     """``jlr.system(tree)`` with the recursive dynamics and with automatic differentiation of L."""
+    import jaxlag as jl
+
     recursive = jlr.system(tree)
-    autodiff = jlr.system(tree, recursive_dynamics=False)
+    autodiff = jlr.system(tree, dynamics=jl.AutodiffDynamics())
     if control is not None:
         recursive, autodiff = recursive.with_control(control), autodiff.with_control(control)
     return recursive, autodiff

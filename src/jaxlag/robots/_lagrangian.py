@@ -16,7 +16,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._custom_types import Args
-from .._mechanics.dynamics import AbstractDynamics, AutodiffDynamics
+from .._mechanics.dynamics import AbstractDynamics
 from .._mechanics.impacts import Unilateral
 from .._system import System
 from ._crba import mass_matrix as tree_mass_matrix
@@ -214,7 +214,11 @@ class TreeDynamics(AbstractDynamics):
 
 
 def system(
-    tree: KinematicTree, *, limits: bool = True, restitution: float = 0.0, recursive_dynamics: bool = True
+    tree: KinematicTree,
+    *,
+    limits: bool = True,
+    restitution: float = 0.0,
+    dynamics: AbstractDynamics | None = None,
 ) -> System:
     r"""The tree as a [`jaxlag.System`][jaxlag.System], so that [`jaxlag.simulate`][jaxlag.simulate],
     constraints, events, [`jaxlag.analysis.linearize`][jaxlag.analysis.linearize] and
@@ -241,13 +245,15 @@ def system(
     centres of mass, inertias, gravity, damping and armature are differentiable inputs:
     ``jl.simulate(sys, q0, qd0, ts, args=eqx.tree_at(lambda t: t.mass, tree, masses))``.
 
-    The equations of motion are jaxlag's, ``M q̈ = F + Jᵀλ``. With ``recursive_dynamics=True``
-    (default), ``M`` and the forces of ``L`` come from the tree's recursive algorithms
+    The equations of motion are jaxlag's, ``M q̈ = F + Jᵀλ``; ``dynamics`` says where ``M`` and
+    the forces of ``L`` come from (the [`jl.System`][jaxlag.System] option of that name). By
+    default (``None``) from the tree's recursive algorithms, ``TreeDynamics(tree)``
     ([`TreeDynamics`][jaxlag.robots.TreeDynamics]: the composite-rigid-body ``M`` and
     Newton–Euler, mapped to ``q̇`` for quaternions), the same quantities as ``M = ∂²L/∂q̇²`` and
-    ``∂L/∂q − (∂²L/∂q̇∂q) q̇`` at a fraction of the cost; with ``recursive_dynamics=False``, by
-    automatic differentiation of ``L`` ([`jl.AutodiffDynamics`][jaxlag.AutodiffDynamics]).
-    Energy, momenta and everything else come from ``L`` either way.
+    ``∂L/∂q − (∂²L/∂q̇∂q) q̇`` at a fraction of the cost; with
+    ``dynamics=jl.AutodiffDynamics()``, by automatic differentiation of ``L``
+    ([`jl.AutodiffDynamics`][jaxlag.AutodiffDynamics]). Energy, momenta and everything else come
+    from ``L`` either way.
     """
     if not isinstance(tree, KinematicTree):
         raise TypeError(f"jaxlag.robots.system takes a KinematicTree (jaxlag.robots.load); got {type(tree)}.")
@@ -310,5 +316,5 @@ def system(
         unilateral=Unilateral(one_sided, restitution=restitution) if one_sided else (),
         dissipation=dissipation,
         actuation=actuation if tree.actuation.shape[1] else None,
-        dynamics=TreeDynamics(tree) if recursive_dynamics else AutodiffDynamics(),
+        dynamics=TreeDynamics(tree) if dynamics is None else dynamics,
     )
