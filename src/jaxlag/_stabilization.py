@@ -109,10 +109,14 @@ def project_state(
     t = as_time(t, q)
     solve_mass = _held_mass_solver(system, q, qd, t, args, free_q)
     if system.holonomic is not None:
-        for _ in range(newton_steps):
-            f = _constraints.holonomic_residual(system, q, t, args)
-            jac = _hold(_constraints.holonomic_jacobian(system, q, t, args, f.shape[0]), free_q)
-            q = q - _schur_correction(system, solve_mass, jac, f, active)
+
+        def newton(_, x):
+            f = _constraints.holonomic_residual(system, x, t, args)
+            jac = _hold(_constraints.holonomic_jacobian(system, x, t, args, f.shape[0]), free_q)
+            return x - _schur_correction(system, solve_mass, jac, f, active)
+
+        # One traced Newton step in a loop, not newton_steps copies: a smaller program.
+        q = jax.lax.fori_loop(0, newton_steps, newton, q)
     if (refresh_mass and system.holonomic is not None) or free_q is not None or free_qd is not None:
         solve_mass = _held_mass_solver(system, q, qd, t, args, free_qd)
     rows, residual = [], []
