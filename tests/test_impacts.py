@@ -525,3 +525,25 @@ def test_default_root_finder_stops_at_the_resolution_of_t():
     found = optx.root_find(condition, finder, jnp.asarray(301.0), options=options, throw=False)
     assert found.result == optx.RESULTS.successful
     assert abs(float(found.value) - (t0 + half)) <= np.spacing(t0)
+
+
+def test_system_methods_take_unilateral_rows_as_simulate_starts():
+    """``System.accelerations``/``multipliers`` at a state: a unilateral row acts where it
+    touches and does not separate, as at the start of a run. A particle above the floor falls
+    freely (``λ = 0``); resting on it, ``λ = m g`` and ``q̈ = 0``; leaving it upwards, free
+    fall again. (They used to take every row as acting: the particle above the floor was held.)"""
+    m, g = 2.0, 9.81
+    particle = jl.System(
+        lambda q, qd: 0.5 * m * qd @ qd - m * g * q[1],
+        holonomic=lambda q: jnp.array([q[1]]),
+        unilateral=(0,),
+    )
+    above = particle.accelerations(jnp.array([0.0, 1.0]), jnp.array([0.3, 0.0]))
+    np.testing.assert_allclose(above, [0.0, -g], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(particle.multipliers(jnp.array([0.0, 1.0]), jnp.zeros(2)), [0.0], atol=1e-12)
+    resting = (jnp.array([0.0, 0.0]), jnp.array([0.3, 0.0]))
+    np.testing.assert_allclose(particle.accelerations(*resting), [0.0, 0.0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(particle.multipliers(*resting), [m * g], rtol=1e-12)
+    np.testing.assert_allclose(particle.constraint_forces(*resting), [0.0, m * g], rtol=0, atol=1e-12)
+    leaving = particle.accelerations(jnp.array([0.0, 0.0]), jnp.array([0.0, 1.0]))
+    np.testing.assert_allclose(leaving, [0.0, -g], rtol=0, atol=1e-12)

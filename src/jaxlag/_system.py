@@ -8,7 +8,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from . import _compile as compilation
-from ._checks import check_state_result
+from ._checks import check_state_result, initial_activity
 from ._conventions import (
     UserFunction,
     as_array_leaves,
@@ -25,6 +25,7 @@ from ._mechanics.dynamics import AbstractDynamics, AutodiffDynamics
 from ._mechanics.friction import Coulomb, as_friction
 from ._mechanics.impacts import Unilateral, as_unilateral
 from ._mechanics.mass_solve import AbstractMassSolve, CheckedCholesky
+from ._tolerances import default_constraint_tolerance
 
 
 class System(eqx.Module):
@@ -318,7 +319,9 @@ class System(eqx.Module):
     def accelerations(
         self, q: Coordinates, qd: Velocities, t: RealScalarLike = 0.0, args: Args = None
     ) -> Vector:
-        """``q̈`` from the (constrained) equations of motion."""
+        """``q̈`` from the (constrained) equations of motion. A unilateral constraint acts where
+        it touches (``|f_i| ≤`` the default constraint tolerance) and does not separate, as at the
+        start of [`simulate`][jaxlag.simulate]; elsewhere it is inactive (its ``λ_i = 0``)."""
         return self._at_state(_accelerations, q, qd, t, args)
 
     def multipliers(
@@ -475,20 +478,30 @@ def _evaluate_at_state(quantity, system, q, qd, t, args):
     return quantity(system, q, qd, t, args)
 
 
+def _solved(system, q, qd, t, args):
+    """``(q̈, λ, μ)`` at a state, with the unilateral rows acting as at the start of a run
+    (`jaxlag._checks.initial_activity`): one that touches (``|f_i| ≤`` the default constraint
+    tolerance) and does not separate acts, any other is inactive (``λ_i = 0``)."""
+    active = None
+    if system.unilateral and system.holonomic is not None:
+        active = initial_activity(system, q, qd, t, args, default_constraint_tolerance(q.dtype))
+    return _kkt.accelerations_and_multipliers(system, q, qd, t, args, active=active)
+
+
 def _accelerations(system, q, qd, t, args):
-    return _kkt.accelerations_and_multipliers(system, q, qd, t, args)[0]
+    return _solved(system, q, qd, t, args)[0]
 
 
 def _multipliers(system, q, qd, t, args):
-    return _kkt.accelerations_and_multipliers(system, q, qd, t, args)[1]
+    return _solved(system, q, qd, t, args)[1]
 
 
 def _velocity_multipliers(system, q, qd, t, args):
-    return _kkt.accelerations_and_multipliers(system, q, qd, t, args)[2]
+    return _solved(system, q, qd, t, args)[2]
 
 
 def _constraint_forces(system, q, qd, t, args):
-    _, lam, mu = _kkt.accelerations_and_multipliers(system, q, qd, t, args)
+    _, lam, mu = _solved(system, q, qd, t, args)
     rows, _ = _constraints.constraint_rows(system, q, qd, t, args)
     return rows.T @ jnp.concatenate([lam, mu])
 
