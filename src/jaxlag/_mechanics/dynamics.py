@@ -21,14 +21,17 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._custom_types import Args
 from .lagrangian import _unit_basis, _velocity_terms, mass_along
+from .mass_solve import Factorization
 
 
 class AbstractDynamics(eqx.Module):
     r"""The mass matrix and the Lagrangian forces of ``M q̈ = F_L + Qⁿᶜ + Jᵀλ + Aᵀμ``.
 
     Subclasses implement `mass_matrix` and `forces`, and may override `mass_and_forces` where
-    the two share work. Every method takes the [`System`][jaxlag.System] (for its ``L``), the
-    state ``(q, q̇)`` (n,), the time ``t`` (an array of ``q``'s floating dtype) and ``args``.
+    the two share work, and `mass_solver`/`solver_and_forces` to apply ``M⁻¹`` without forming
+    ``M`` (every solve of the equations of motion, impacts and projections goes through them).
+    Every method takes the [`System`][jaxlag.System] (for its ``L``), the state ``(q, q̇)``
+    (n,), the time ``t`` (an array of ``q``'s floating dtype) and ``args``.
     """
 
     @abc.abstractmethod
@@ -63,6 +66,34 @@ class AbstractDynamics(eqx.Module):
     ) -> tuple[Float[Array, "n n"], Float[Array, " n"]]:
         """``(M, F_L)`` at one state."""
         return self.mass_matrix(system, q, qd, t, args), self.forces(system, q, qd, t, args)
+
+    def mass_solver(
+        self,
+        system: eqx.Module,
+        q: Float[Array, " n"],
+        qd: Float[Array, " n"],
+        t: Float[Array, ""],
+        args: Args,
+    ) -> Factorization:
+        """``b ↦ M⁻¹ b`` (vectors and matrices) at one state: by default `mass_matrix` factored
+        by the system's ``mass_solve``. An implementation that applies ``M⁻¹`` without forming
+        ``M`` (e.g. the articulated-body algorithm of a tree) overrides this and
+        `solver_and_forces`; every solve of the equations of motion, of impacts and of the
+        projections goes through them."""
+        mass = self.mass_matrix(system, q, qd, t, args)
+        return system.mass_solve.factor(mass, system.diagonal_mass)  # pyright: ignore[reportAttributeAccessIssue]
+
+    def solver_and_forces(
+        self,
+        system: eqx.Module,
+        q: Float[Array, " n"],
+        qd: Float[Array, " n"],
+        t: Float[Array, ""],
+        args: Args,
+    ) -> tuple[Factorization, Float[Array, " n"]]:
+        """``(b ↦ M⁻¹ b, F_L)`` at one state (by default from `mass_and_forces`)."""
+        mass, force = self.mass_and_forces(system, q, qd, t, args)
+        return system.mass_solve.factor(mass, system.diagonal_mass), force  # pyright: ignore[reportAttributeAccessIssue]
 
     def dependence_mass(
         self,

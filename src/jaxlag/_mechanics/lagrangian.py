@@ -131,18 +131,18 @@ def mass_solver(system, q, qd, t, args):
     """``b ↦ M⁻¹ b`` at a state: ``M`` factored once (or the precomputed constant inverse)."""
     if system.constant_mass is not None:
         return system.constant_mass.solve
-    # The system's mass_solve (jaxlag._mechanics.mass_solve): checked Cholesky, or NaN on failure.
-    return system.mass_solve.factor(mass_matrix(system, q, qd, t, args), system.diagonal_mass)
+    # By default the system's mass_solve (jaxlag._mechanics.mass_solve) factors M: checked
+    # Cholesky, or NaN on failure; a dynamics object may apply M⁻¹ without forming M.
+    return system.dynamics.mass_solver(system, q, qd, as_time(t, q), args)
 
 
 def mass_solver_and_forces(system, q, qd, t, args):
     """``(b ↦ M⁻¹ b, F)``: the right-hand side of ``M q̈ = F`` with ``M`` ready to solve with."""
-    mass, force = mass_and_forces(system, q, qd, t, args)
     if system.constant_mass is not None:
-        solve = system.constant_mass.solve
-    else:
-        solve = system.mass_solve.factor(mass, system.diagonal_mass)
-    return solve, force
+        return system.constant_mass.solve, mass_and_forces(system, q, qd, t, args)[1]
+    t = as_time(t, q)
+    solve, force = system.dynamics.solver_and_forces(system, q, qd, t, args)
+    return solve, force + nonconservative_forces(system, q, qd, t, args)
 
 
 def generalized_forces(system, q, qd, t=0.0, args=None):

@@ -29,6 +29,7 @@ from ._crba import mass_matrix as mass_matrix
 from ._kinematics import LinkPoses as LinkPoses
 from ._kinematics import configuration_rate as configuration_rate
 from ._kinematics import forward_kinematics as forward_kinematics
+from ._lagrangian import ArticulatedBodyDynamics as ArticulatedBodyDynamics
 from ._lagrangian import TreeDynamics as TreeDynamics
 from ._lagrangian import system as system
 from ._load import from_mujoco as from_mujoco
@@ -38,6 +39,7 @@ from ._rnea import inverse_dynamics as inverse_dynamics
 from ._tree import KinematicTree as KinematicTree
 
 __all__ = [
+    "ArticulatedBodyDynamics",
     "KinematicTree",
     "LinkPoses",
     "TreeDynamics",

@@ -1,5 +1,7 @@
 r"""The articulated-body algorithm: forward dynamics ``v̇ = M⁻¹(τ − damping · v − C v − g)``, O(links)."""
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -81,3 +83,25 @@ def forward_dynamics(
         lay.parent_slot, root, outward, (transform, subspace, product, u_mats, d_invs, us)
     )
     return unpadded(tree, accelerations)
+
+
+def _at_rest(tree: KinematicTree) -> KinematicTree:
+    """The tree without gravity and damping: ABA at ``v = 0`` on it applies ``M⁻¹``."""
+    return eqx.tree_at(
+        lambda t: (t.gravity, t.damping), tree, (jnp.zeros_like(tree.gravity), jnp.zeros_like(tree.damping))
+    )
+
+
+def inverse_mass(
+    tree: KinematicTree, q: Float[Array, " nq"], b: Float[Array, " nv *columns"]
+) -> Float[Array, " nv *columns"]:
+    r"""``M(q)⁻¹ b`` (``b`` a vector or the columns of a matrix) by the articulated-body algorithm
+    at rest (``v = 0``, no gravity, no damping): ``O(links)`` per column, ``M`` never formed; the
+    articulated inertias depend on ``q`` alone, so ``vmap`` over the columns computes them once."""
+    still = _at_rest(tree)
+    zero = jnp.zeros(tree.nv, dtype=b.dtype)
+
+    def column(x):
+        return forward_dynamics(still, q, zero, x)
+
+    return column(b) if b.ndim == 1 else jax.vmap(column, in_axes=1, out_axes=1)(b)
