@@ -18,6 +18,9 @@ classical tableau, 4 evaluations of the right-hand side per step), ``STEPS`` ste
 * *jl.simulate(jlr.system)*: the recursive path, ``jl.simulate`` of ``jlr.system(tree)`` (``M`` by
   composite rigid bodies, the forces by Newton–Euler, then jaxlag's dense solve of ``M q̈ = F``;
   default ``checks``, so the initial-state check is compiled in);
+* *jl.simulate(jlr.system, articulated)*: the same with
+  ``dynamics=jlr.ArticulatedBodyDynamics(tree)``: ``M`` never formed, ``M⁻¹`` applied by the
+  articulated-body algorithm (O(N) per step);
 * *jl.simulate(jlr.system, autodiff)*: the same with ``jlr.system(tree, dynamics=jl.AutodiffDynamics())``,
   ``M = ∂²L/∂q̇²`` and ``F = ∂L/∂q − (∂²L/∂q̇∂q) q̇`` by automatic differentiation of the tree's
   ``L = T − V`` (the path every ``jlr.system`` took before ``TreeDynamics``);
@@ -233,16 +236,28 @@ def simulate_kwargs(steps: int) -> dict:
 # ----------------------------------------------------------------------------- chain contenders
 RECURSIVE = "jl.simulate(jlr.system)"
 AUTODIFF = "jl.simulate(jlr.system, autodiff)"
+ARTICULATED = "jl.simulate(jlr.system, articulated)"
 CHAIN_CONTENDERS = (
     "hand M, solve",
     "ABA",
     "CRBA + RNEA, dense solve",
     RECURSIVE,
+    ARTICULATED,
     AUTODIFF,
     "jl.System(hand L)",
 )
 BASELINE = "hand M, solve"
-FLOATING_CONTENDERS = (RECURSIVE, AUTODIFF)
+FLOATING_CONTENDERS = (RECURSIVE, ARTICULATED, AUTODIFF)
+
+
+def _dynamics(name: str, tree):
+    """The ``dynamics=`` of `jlr.system` for a contender (None: the default TreeDynamics)."""
+    import jaxlag as jl
+    import jaxlag.robots as jlr
+
+    if name == ARTICULATED:
+        return jlr.ArticulatedBodyDynamics(tree)
+    return jl.AutodiffDynamics() if name == AUTODIFF else None
 
 
 def chain_contender(name: str, n: int) -> tuple[Callable, tuple]:
@@ -270,8 +285,8 @@ def chain_contender(name: str, n: int) -> tuple[Callable, tuple]:
             return jnp.linalg.solve(jlr.mass_matrix(tree, q), rhs)
 
         return (lambda q, v: rk4_solve(dense, q, v, STEPS)), (q0, v0)
-    if name in (RECURSIVE, AUTODIFF):
-        system = jlr.system(tree, dynamics=None if name == RECURSIVE else jl.AutodiffDynamics())
+    if name in (RECURSIVE, ARTICULATED, AUTODIFF):
+        system = jlr.system(tree, dynamics=_dynamics(name, tree))
         return (lambda q, v: jl.simulate(system, q, v, **simulate_kwargs(STEPS)).q[-1]), (q0, v0)
     raise ValueError(name)
 
@@ -284,7 +299,7 @@ def floating_contender(name: str, k: int) -> tuple[Callable, tuple]:
     if name not in FLOATING_CONTENDERS:
         raise ValueError(name)
     tree = jlr.load(floating_xml(k))
-    system = jlr.system(tree, dynamics=None if name == RECURSIVE else jl.AutodiffDynamics())
+    system = jlr.system(tree, dynamics=_dynamics(name, tree))
 
     def solve(q, qd):
         trajectory = jl.simulate(system, q, qd, **simulate_kwargs(STEPS))
@@ -556,7 +571,7 @@ def run_chain(repeats: int) -> list[str]:
         exponents,
     )
     verdicts = []
-    for name in ("ABA", RECURSIVE, AUTODIFF):
+    for name in ("ABA", RECURSIVE, ARTICULATED, AUTODIFF):
         f = first.get((name, 100))
         if f is None:
             continue
@@ -566,8 +581,10 @@ def run_chain(repeats: int) -> list[str]:
                 f"{'ok' if ok else 'MISS'}  {name} {label} at N = 100: {f[key]:.2f} s "
                 f"(target ≤ {FIRST_RESULT_TARGET_S} s)"
             )
-    for name in ("ABA", RECURSIVE, AUTODIFF):
-        row = next(row for row in exponents if row[0] == name)
+    for name in ("ABA", RECURSIVE, ARTICULATED, AUTODIFF):
+        row = next((row for row in exponents if row[0] == name), None)
+        if row is None:
+            continue
         verdicts.append(
             f"{'ok' if row[3] <= 1.2 else 'MISS'}  {name} per step O(N) up to N = {SIZES[-1]}: "
             f"p = {row[3]:.2f} (CPU; {row[4]:.2f} over N ≥ 50)"
