@@ -227,9 +227,12 @@ class ArticulatedBodyDynamics(TreeDynamics):
     (``O(links³)``). For quaternions, ``M = Hᵀ diag(M_v, I) H`` with ``H = [G; Qᵀ]`` and
     ``H Hᵀ = diag(1 or 4|Q|², |Q|²)``, so ``M⁻¹ = Hᵀ W diag(M_v⁻¹, I) W H``, ``W = (H Hᵀ)⁻¹``.
 
-    Which is faster depends on the tree and the machine: on one CPU core the dense route is
-    cheaper below about a hundred links of a chain and within 15 % at two hundred; measure with
-    ``python -m benchmarks.bench_robots``. The system's ``mass_solve`` is not consulted: a
+    Which is faster depends on the tree and the machine. Measured on one CPU core (``python -m
+    benchmarks.bench_robots``): per step this object scales as ``N^0.97`` on a hinge chain
+    against ``N^1.44`` for `TreeDynamics` (50–200 links), but costs 2× more at 10–50 links and
+    1.14× more at 200 (the two cross near 270 links), and 3.5–5.8× more on floating bases of
+    17–87 coordinates, whose quaternion rows add right-hand sides to every step's solves and
+    projections. Use it for long unconstrained chains. The system's ``mass_solve`` is not consulted: a
     tree of positive masses and inertias has a positive definite ``M`` (the pivots ``D_i`` of the
     algorithm are its articulated inertias). ``M`` itself (`mass_matrix`) is still the
     composite-rigid-body one, for the analyses that need the matrix.
