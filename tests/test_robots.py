@@ -379,8 +379,8 @@ def test_system_with_free_and_ball_joints_follows_the_recursive_dynamics(name):
 
 def test_floating_base_moves_alike_with_both_dynamics():
     """A free-flying base with a ball-jointed leg over 0.3 s: the recursive and the autodiff
-    systems give the same trajectory and energy, and the same gradient with respect to the link
-    masses (which a central difference confirms: its error is O(h²) ≈ 1e-10 relative plus the
+    systems give the same trajectory and energy; the recursive one's gradient with respect to the
+    link masses matches a central difference (whose error is O(h²) ≈ 1e-10 relative plus the
     solver's tolerance over h, about 1e-7)."""
     import jaxlag as jl
 
@@ -395,14 +395,13 @@ def test_floating_base_moves_alike_with_both_dynamics():
     np.testing.assert_allclose(fast.qd, slow.qd, rtol=0, atol=1e-9)
     np.testing.assert_allclose(fast.energy, slow.energy, rtol=0, atol=1e-9)
 
-    # grad with respect to the link masses (the tree as args): the two paths, and a central difference
+    # grad with respect to the link masses (the tree as args) against a central difference (the
+    # autodiff path's gradient is tested in test_recursive_dynamics_under_jit_vmap_grad)
     def final_height(system, masses):
         heavier = eqx.tree_at(lambda t: t.mass, tree, masses)
         return jl.simulate(system, q, qd, ts, args=heavier).q[-1, 2]
 
     grad_fast = jax.grad(lambda m: final_height(recursive, m))(tree.mass)
-    grad_slow = jax.grad(lambda m: final_height(autodiff, m))(tree.mass)
-    np.testing.assert_allclose(grad_fast, grad_slow, rtol=1e-8, atol=1e-10)
     h = 1e-5 * tree.mass[0]
     step = jnp.zeros_like(tree.mass).at[0].set(h)
     central = (final_height(recursive, tree.mass + step) - final_height(recursive, tree.mass - step)) / (
