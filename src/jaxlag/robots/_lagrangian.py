@@ -28,25 +28,31 @@ from ._spatial import spatial_inertia
 from ._tree import KinematicTree, joint_motion, layout
 
 
-def _quaternion_blocks(tree: KinematicTree) -> np.ndarray:
-    """The ``q`` indices of every ball's and free joint's quaternion, shape ``(k, 4)``."""
+def _has_quaternions(tree: KinematicTree) -> bool:
+    """Whether the tree has a ball or a free joint (``q̇ ≠ v`` there)."""
+    return any(kind in ("ball", "free") for kind in tree.joint_types)
+
+
+def _rotation_blocks(tree: KinematicTree, addresses: tuple[int, ...], width: int) -> np.ndarray:
+    """Indices ``address + (3 if free) + arange(width)`` of every ball and free joint, shape
+    ``(k, width)``: the quaternions in ``q`` (``q_addresses``, 4), the angular velocities in ``v``
+    (``v_addresses``, 3), in the same order."""
     starts = [
-        tree.q_addresses[i] + (3 if kind == "free" else 0)
+        addresses[i] + (3 if kind == "free" else 0)
         for i, kind in enumerate(tree.joint_types)
         if kind in ("ball", "free")
     ]
-    return np.asarray(starts, dtype=np.int32).reshape(-1, 1) + np.arange(4, dtype=np.int32)
+    return np.asarray(starts, dtype=np.int32).reshape(-1, 1) + np.arange(width, dtype=np.int32)
+
+
+def _quaternion_blocks(tree: KinematicTree) -> np.ndarray:
+    """The ``q`` indices of every ball's and free joint's quaternion, shape ``(k, 4)``."""
+    return _rotation_blocks(tree, tree.q_addresses, 4)
 
 
 def _angular_blocks(tree: KinematicTree) -> np.ndarray:
-    """The ``v`` indices of every ball's and free joint's angular velocity, shape ``(k, 3)``,
-    in the order of `_quaternion_blocks`."""
-    starts = [
-        tree.v_addresses[i] + (3 if kind == "free" else 0)
-        for i, kind in enumerate(tree.joint_types)
-        if kind in ("ball", "free")
-    ]
-    return np.asarray(starts, dtype=np.int32).reshape(-1, 1) + np.arange(3, dtype=np.int32)
+    """The ``v`` indices of the same joints' angular velocities, shape ``(k, 3)``."""
+    return _rotation_blocks(tree, tree.v_addresses, 3)
 
 
 def tree_velocity(tree: KinematicTree, q: Array, qd: Array) -> Array:
@@ -170,7 +176,7 @@ class TreeDynamics(AbstractDynamics):
         return self.tree if args is None else args
 
     def _quaternions(self) -> bool:
-        return any(kind in ("ball", "free") for kind in self.tree.joint_types)
+        return _has_quaternions(self.tree)
 
     def mass_matrix(
         self,
@@ -264,7 +270,7 @@ def _lagrangian_forces(robot: KinematicTree, q: Array, qd: Array, momentum: Arra
     r"""``F_L = −Gᵀ(C v + g + M_v Ġ q̇)`` by Newton–Euler, with each quaternion's component along
     ``Q`` that of ``L`` (`_along_quaternions`); ``momentum`` ``M_v v`` if known (else one more
     Newton–Euler pass, at rest)."""
-    if not any(kind in ("ball", "free") for kind in robot.joint_types):
+    if not _has_quaternions(robot):
         return -bias_forces(robot, q, qd)
     v, map_acceleration = jax.jvp(lambda x: tree_velocity(robot, x, qd), (q,), (qd,))
     # C v + g + M_v Ġq̇ (armature included in M_v, damping left to the system's dissipation)
@@ -277,7 +283,7 @@ def _lagrangian_forces(robot: KinematicTree, q: Array, qd: Array, momentum: Arra
 
 def _inverse_mass_in_q(robot: KinematicTree, q: Array, b: Array) -> Array:
     r"""``M⁻¹ b`` for ``M = ∂²L/∂q̇²`` (``b`` a vector or a matrix of columns), by `inverse_mass`."""
-    if not any(kind in ("ball", "free") for kind in robot.joint_types):
+    if not _has_quaternions(robot):
         return inverse_mass(robot, q, b)
     if b.ndim == 2:
         return jax.vmap(lambda x: _inverse_mass_in_q(robot, q, x), in_axes=1, out_axes=1)(b)
