@@ -31,7 +31,7 @@ from ._mechanics.constant_mass import with_constant_mass
 from ._misc import is_concrete
 from ._segment_loop import solve_segments
 from ._simulation_inputs import SimulationInputs
-from ._solver import tangent_solve
+from ._solver import tangent_solve, unit_time
 from ._solver.guard import guard, saving_guard_state
 from ._solver.save_times import checked_save_times, save_checked_state, solve_saving_times
 from ._solver.step_once import StepOnce
@@ -109,14 +109,22 @@ def _integrate(
     """``diffrax.diffeqsolve`` without diffrax's exceptions: failures are recorded (`jaxlag._errors`).
     ``with_tangents``: ``solver`` is a `TangentSolver` and ``y0``
     carries tangents, which the (guarded) ``controller`` is kept from seeing."""
+    saveat = saving_guard_state(saveat)
+    save_times = checked_save_times(saveat)
+    clock = None
+    applies = unit_time.unit_time_applies(solver, controller, saveat, adjoint, event, (save_checked_state,))
+    if applies and unit_time.default_time_dtype(t0):
+        # diffrax integrates s in [0, 1] (constants): its t1 threshold folds away (jaxlag._solver.unit_time)
+        clock = unit_time.Clock(jnp.asarray(t0), jnp.asarray(t1, jnp.asarray(t0).dtype))
+        solver = unit_time.UnitTimeSolver(solver, clock)
+        controller = unit_time.unit_time_controller(controller, clock)
+        t0, t1 = unit_time.unit_interval()
     if with_tangents:
         controller = tangent_solve.primal_step_sizes(controller)
-    saveat = saving_guard_state(saveat)
     solve = diffrax.diffeqsolve
-    save_times = checked_save_times(saveat)
     if save_times is not None:  # checked by simulate: without diffrax's run-time checks (host callbacks)
-        solve = ft.partial(solve_saving_times, save_times)
-    return solve(
+        solve = ft.partial(solve_saving_times, save_times, clock=clock)
+    solution = solve(
         terms=term,
         solver=solver,
         t0=t0,
@@ -132,6 +140,9 @@ def _integrate(
         throw=False,
         progress_meter=progress_meter,
     )
+    if clock is None or save_times is not None:
+        return solution
+    return unit_time.real_time_solution(solution, clock)
 
 
 def _finish(system, fast, projection, solution, ys, t0, t1, q0, qd0, args, max_steps):

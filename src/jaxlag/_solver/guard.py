@@ -34,13 +34,16 @@ class GuardState(eqx.Module):
     scale: Float[Array, ""]  # time scale of the solve: max(|t0|, |t1|, t1 − t0)
 
 
-def _guarded_init(controller, initial_step, terms, t0, t1, y0, dt0, args, func, error_order):
+def _guarded_init(controller, initial_step, time_scale, terms, t0, t1, y0, dt0, args, func, error_order):
     if initial_step is not None:
         dt0 = initial_step
     tnext, inner = controller.init(terms, t0, t1, y0, dt0, args, func, error_order)
     q, qd = y0
     t0 = jnp.asarray(t0, q.dtype)
-    scale = jnp.maximum(jnp.maximum(jnp.abs(t0), jnp.abs(t1)), jnp.abs(t1 - t0))
+    if time_scale is None:
+        scale = jnp.maximum(jnp.maximum(jnp.abs(t0), jnp.abs(t1)), jnp.abs(t1 - t0))
+    else:
+        scale = time_scale
     record = jax.lax.stop_gradient((t0, jnp.asarray(tnext - t0, q.dtype), q, qd, jnp.asarray(scale, q.dtype)))
     state = GuardState(inner, *record[:4], jnp.asarray(False), jnp.asarray(False), record[4])
     return tnext, state
@@ -75,13 +78,25 @@ class FiniteStepGuard(ForwardingAdaptiveController):
 
     controller: diffrax.AbstractAdaptiveStepSizeController
     initial_step: Float[ArrayLike, ""] | None = None  # |dt0|, given the direction by `wrap`
+    time_scale: Float[ArrayLike, ""] | None = None  # of round-off: default max(|t0|, |t1|, t1 − t0)
 
     def wrap(self, direction):
-        return FiniteStepGuard(self.controller.wrap(direction), _directed(self.initial_step, direction))  # pyright: ignore[reportCallIssue]
+        wrapped, step = self.controller.wrap(direction), _directed(self.initial_step, direction)
+        return FiniteStepGuard(wrapped, step, self.time_scale)  # pyright: ignore[reportCallIssue]
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
         return _guarded_init(
-            self.controller, self.initial_step, terms, t0, t1, y0, dt0, args, func, error_order
+            self.controller,
+            self.initial_step,
+            self.time_scale,
+            terms,
+            t0,
+            t1,
+            y0,
+            dt0,
+            args,
+            func,
+            error_order,
         )
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
@@ -95,13 +110,25 @@ class FiniteFixedStepGuard(diffrax.AbstractStepSizeController):
 
     controller: diffrax.AbstractStepSizeController
     initial_step: Float[ArrayLike, ""] | None = None  # |dt0|, given the direction by `wrap`
+    time_scale: Float[ArrayLike, ""] | None = None  # of round-off: default max(|t0|, |t1|, t1 − t0)
 
     def wrap(self, direction):
-        return FiniteFixedStepGuard(self.controller.wrap(direction), _directed(self.initial_step, direction))
+        wrapped, step = self.controller.wrap(direction), _directed(self.initial_step, direction)
+        return FiniteFixedStepGuard(wrapped, step, self.time_scale)
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
         return _guarded_init(
-            self.controller, self.initial_step, terms, t0, t1, y0, dt0, args, func, error_order
+            self.controller,
+            self.initial_step,
+            self.time_scale,
+            terms,
+            t0,
+            t1,
+            y0,
+            dt0,
+            args,
+            func,
+            error_order,
         )
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):

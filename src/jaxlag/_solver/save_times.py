@@ -33,6 +33,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int, PyTree
 
 from .forwarding import ForwardingSolver
+from .unit_time import Clock, real_time_solution
 
 
 class SavedTimesState(eqx.Module):
@@ -150,17 +151,26 @@ def checked_save_times(saveat: diffrax.SaveAt) -> Float[Array, " T"] | None:
     return sub.ts
 
 
-def solve_saving_times(ts: Float[Array, " T"], *, solver, saveat: diffrax.SaveAt, adjoint, **kwargs):
+def solve_saving_times(
+    ts: Float[Array, " T"], *, solver, saveat: diffrax.SaveAt, adjoint, clock: Clock | None = None, **kwargs
+):
     """``diffrax.diffeqsolve(solver=solver, saveat=saveat, adjoint=adjoint, **kwargs)`` for a
     ``saveat`` that saves the state at increasing times ``ts`` from ``t0 = ts[0]`` to
     ``t1 = ts[-1]``, through `SaveTimes`: the returned ``Solution``'s ``ts`` and ``ys`` are those
-    ``SaveAt(ts=ts)`` gives (its other fields as asked by ``saveat``, and the solver state)."""
-    wrapped = SaveTimes.for_adjoint(solver, ts, adjoint)
+    ``SaveAt(ts=ts)`` gives (its other fields as asked by ``saveat``, and the solver state).
+    With a ``clock`` the solve is on the unit interval (`jaxlag._solver.unit_time`: ``kwargs``'s
+    times are 0 and 1, ``solver`` a `UnitTimeSolver`), the returned times are the run's."""
+    unit_ts = ts if clock is None else clock.unit(ts)
+    wrapped = SaveTimes.for_adjoint(solver, unit_ts, adjoint)
     within = diffrax.SaveAt(t1=True, solver_state=True, controller_state=saveat.controller_state)
     solution = diffrax.diffeqsolve(solver=wrapped, saveat=within, adjoint=adjoint, **kwargs)
     t0, t1, y0, args = kwargs["t0"], kwargs["t1"], kwargs["y0"], kwargs.get("args")
-    values = saved_values(solution, ts, t0, t1, y0, args)
+    if clock is not None:
+        t0, t1 = clock.t0, clock.t1  # for a run of length 0 (the save loop works in s)
+    values = saved_values(solution, unit_ts, t0, t1, y0, args)
     if solution.ts is None:
         raise RuntimeError("jaxlag: the solve did not return its final time.")
-    reached = (ts <= solution.ts[-1]) | (t0 == t1)
+    reached = (unit_ts <= solution.ts[-1]) | (t0 == t1)
+    if clock is not None:
+        solution = real_time_solution(solution, clock)
     return eqx.tree_at(lambda s: (s.ts, s.ys), solution, (jnp.where(reached, ts, jnp.inf), values))

@@ -188,6 +188,20 @@ def _primal_func(func, zeros):
     return primal
 
 
+def _primal_start(owner):
+    """The `TangentSolver`'s ``primal_func`` as the solver ``owner`` (it or a wrapper around it,
+    e.g. SaveTimes) presents its ``func``: no tangents traced for the initial step size. None if
+    there is no TangentSolver inside."""
+    if type(owner) is TangentSolver:
+        return owner.primal_func
+    if not isinstance(owner, diffrax.AbstractWrappedSolver):
+        return None
+    inner = _primal_start(owner.solver)
+    # A wrapper that changes the time variable (UnitTimeSolver) says how its func looks outside.
+    seen_from_outside = getattr(owner, "seen_from_outside", None)
+    return inner if inner is None or seen_from_outside is None else seen_from_outside(inner)
+
+
 def _primal_error(y_error):
     return None if y_error is None else y_error[0]
 
@@ -201,13 +215,8 @@ class PrimalStepSizes(diffrax.AbstractStepSizeController):
         return type(self)(self.controller.wrap(direction))
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
-        owner = getattr(func, "__self__", None)
-        # Wrappers around the TangentSolver (SaveTimes) pass isinstance checks on to it.
-        while isinstance(owner, diffrax.AbstractWrappedSolver) and type(owner) is not TangentSolver:
-            owner = owner.solver
-        if type(owner) is TangentSolver:  # no tangents traced for the initial step size
-            primal = owner.primal_func
-        else:
+        primal = _primal_start(getattr(func, "__self__", None))
+        if primal is None:
             primal = _primal_func(func, jax.tree.map(jnp.zeros_like, y0[1]))
         return self.controller.init(terms, t0, t1, y0[0], dt0, args, primal, error_order)
 
