@@ -56,8 +56,15 @@ PENDULUM = jl.System(
 
 def test_compiler_options(monkeypatch):
     expected = {"xla_cpu_use_fusion_emitters": False} if jax.default_backend() == "cpu" else {}
+    monkeypatch.setattr(compilation.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
     assert jl.compiler_options() == expected
     assert jl.compiler_options("gpu") == {}
+    # A process that may run on one core only: XLA's code generation is not split for threads.
+    monkeypatch.setattr(compilation.os, "sched_getaffinity", lambda pid: {3}, raising=False)
+    assert jl.compiler_options("cpu") == {
+        "xla_cpu_use_fusion_emitters": False,
+        "xla_cpu_parallel_codegen_split_count": 1,
+    }
     monkeypatch.setenv("JAXLAG_COMPILER_OPTIONS", "0")
     assert jl.compiler_options("cpu") == {}
 

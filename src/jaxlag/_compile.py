@@ -35,6 +35,19 @@ from ._errors import current_on_failure, on_failure
 #: XLA options for the CPU backend (see the module docstring for the measurements).
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
+#: ... and for a process that may run on one core only: XLA splits the LLVM module of a program
+#: into parts compiled by parallel threads, which on one core only adds the cost of the parts.
+SINGLE_CORE_OPTIONS = {"xla_cpu_parallel_codegen_split_count": 1}
+
+
+def _one_core() -> bool:
+    """Whether this process may run on a single core (its CPU affinity: a pinned process, a
+    one-CPU container or batch job); False where the platform does not say."""
+    try:
+        return len(os.sched_getaffinity(0)) == 1
+    except (AttributeError, OSError):
+        return False
+
 
 def _switched_off(variable: str) -> bool:
     """Whether the environment variable says 0/false/no/off (jaxlag's opt-outs)."""
@@ -51,7 +64,7 @@ def compiler_options(backend: str | None = None) -> dict:
     backend = jax.default_backend() if backend is None else backend
     if backend != "cpu" or _switched_off("JAXLAG_COMPILER_OPTIONS") or not _cpu_options_supported():
         return {}
-    return dict(CPU_COMPILER_OPTIONS)
+    return {**CPU_COMPILER_OPTIONS, **(SINGLE_CORE_OPTIONS if _one_core() else {})}
 
 
 @functools.cache
@@ -60,7 +73,8 @@ def _cpu_options_supported() -> bool:
     once per process."""
     try:
         on_cpu = jax.device_put(np.float32(0), jax.devices("cpu")[0])
-        jax.jit(lambda x: x + 1, compiler_options=CPU_COMPILER_OPTIONS).lower(on_cpu).compile()
+        options = {**CPU_COMPILER_OPTIONS, **SINGLE_CORE_OPTIONS}
+        jax.jit(lambda x: x + 1, compiler_options=options).lower(on_cpu).compile()
         return True
     except Exception:  # noqa: BLE001 - any refusal: compile with XLA's defaults
         return False
@@ -116,7 +130,7 @@ class _BackendJit:
         functools.update_wrapper(self, fn)
         self._fn = fn
         self._jitkwargs = jitkwargs
-        self._wrappers: dict[tuple[bool, Any], Any] = {}
+        self._wrappers: dict[tuple[Any, Any], Any] = {}  # (options or False, checks' choice)
 
     def _wrapper(self) -> Any:
         options = compiler_options() if _compiled_at_top_level() else {}
@@ -125,7 +139,8 @@ class _BackendJit:
         choice = current_on_failure()
         if not options:
             return self._plain(choice)
-        wrapper = self._wrappers.get((True, choice))
+        key = (tuple(sorted(options.items())), choice)
+        wrapper = self._wrappers.get(key)
         if wrapper is None:
             # The tuned program is a call of the plain one, whose trace JAX caches (per jit and
             # options): a trace of the plain one nested in another (``jax.eval_shape`` of the
@@ -135,12 +150,12 @@ class _BackendJit:
             kwargs = dict(self._jitkwargs)
             kwargs["compiler_options"] = {**options, **kwargs.get("compiler_options", {})}
             wrapper = eqx.filter_jit(functools.wraps(self._fn)(lambda *a, **k: plain(*a, **k)), **kwargs)
-            self._wrappers[(True, choice)] = wrapper
+            self._wrappers[key] = wrapper
         return wrapper
 
     def _plain(self, choice) -> Any:
         """The wrapper without options, tracing the function under ``choice``."""
-        wrapper = self._wrappers.get((False, choice))
+        wrapper = self._wrappers.get((False, choice))  # no options
         if wrapper is None:
             fn = self._fn
 
