@@ -36,14 +36,37 @@ def test_a_time_dependent_run_off_zero_matches_its_closed_form():
     np.testing.assert_allclose(np.asarray(traj.q[:, 0]), _closed_form(ts, 5.0, 0.3, -0.2), atol=2e-9)
 
 
-def test_the_unit_interval_solve_equals_the_real_time_solve(monkeypatch):
+def test_the_unit_interval_solve_equals_the_real_time_solve():
     _, unit = _driven_run()
-    monkeypatch.setattr(unit_time, "unit_time_applies", lambda *args, **kwargs: False)
-    _, real = _driven_run()
-    # Same steps up to the first step size (diffrax's start heuristic is not scale invariant):
-    # the two differ by the integration error, not more.
+    # A ClipStepSizeController (here without breakpoints) is solved in the run's time.
+    real_time = diffrax.ClipStepSizeController(diffrax.PIDController(rtol=1e-10, atol=1e-10))
+    _, real = _driven_run(stepsize_controller=real_time)
+    assert int(unit.stats["num_steps"]) != 0 and int(real.stats["num_steps"]) != 0
+    # The same steps up to the first step size (diffrax's start heuristic is not scale
+    # invariant): the two differ by the integration error, not more.
     np.testing.assert_allclose(np.asarray(unit.q), np.asarray(real.q), atol=2e-9)
     np.testing.assert_allclose(np.asarray(unit.qd), np.asarray(real.qd), atol=2e-9)
+
+
+def test_which_solves_take_the_unit_interval():
+    from jaxlag._solver.guard import guard
+
+    pid = diffrax.PIDController(rtol=1e-8, atol=1e-8)
+    saves = diffrax.SaveAt(t1=True)
+    forward = diffrax.ForwardMode()
+    assert unit_time.unit_time_applies(diffrax.Tsit5(), guard(pid), saves, forward, None)
+    assert unit_time.unit_time_applies(jl.RK4(), guard(diffrax.ConstantStepSize()), saves, forward, None)
+    step_to = diffrax.StepTo(jnp.linspace(0, 1, 3))
+    assert unit_time.unit_time_applies(diffrax.Tsit5(), step_to, saves, forward, None)
+    # Breakpoints (input tables), a diffrax event, dense output, another adjoint: real time.
+    clipped = guard(diffrax.ClipStepSizeController(pid, jump_ts=jnp.array([0.5])))
+    assert not unit_time.unit_time_applies(diffrax.Tsit5(), clipped, saves, forward, None)
+    event = diffrax.Event(lambda t, y, args, **kwargs: t - 0.5)
+    assert not unit_time.unit_time_applies(diffrax.Tsit5(), guard(pid), saves, forward, event)
+    dense = diffrax.SaveAt(dense=True)
+    assert not unit_time.unit_time_applies(diffrax.Tsit5(), guard(pid), dense, forward, None)
+    backsolve = diffrax.BacksolveAdjoint()
+    assert not unit_time.unit_time_applies(diffrax.Tsit5(), guard(pid), saves, backsolve, None)
 
 
 def test_constant_steps_in_unit_time():
