@@ -5,38 +5,15 @@ compiled, differentiable diffrax simulation. Sign convention everywhere:
 ``d/dt ∂L/∂q̇ − ∂L/∂q = Jᵀλ + Aᵀμ − ∂R/∂q̇ + Q``, i.e. ``M q̈ = F + Jᵀλ + Aᵀμ``.
 
 Importing jaxlag changes no JAX setting; `enable_compilation_cache` is the opt-in for a
-cross-process compilation cache. ``jaxlag.learned`` (with optax's training code) and
-``jaxlag.experimental`` (with Pallas) are imported on first use, so that a script that needs
-neither does not pay for their import.
+cross-process compilation cache. The sub-namespaces (``jaxlag.systems``, ``jaxlag.analysis``,
+``jaxlag.learned`` with optax's training code, ``jaxlag.experimental`` with Pallas, ...) are
+imported on first use (``jl.systems``, ``import jaxlag.systems``), so that a script pays only for
+the ones it uses.
 """
 
 import importlib
 from typing import TYPE_CHECKING
 
-from . import (
-    analysis as analysis,
-)
-from . import (
-    contact as contact,
-)
-from . import (
-    coordinates as coordinates,
-)
-from . import (
-    inputs as inputs,
-)
-from . import (
-    loads as loads,
-)
-from . import (
-    plot as plot,
-)
-from . import (
-    rotations as rotations,
-)
-from . import (
-    systems as systems,
-)
 from ._adjoint import ForwardSensitivities as ForwardSensitivities
 from ._batch.batch import batch_sharding as batch_sharding
 from ._batch.batch import simulate_batch as simulate_batch
@@ -142,11 +119,30 @@ from ._vector_field import EquationsOfMotion as EquationsOfMotion
 __version__ = "0.1.0"
 
 if TYPE_CHECKING:
+    from . import analysis as analysis
+    from . import contact as contact
+    from . import coordinates as coordinates
     from . import experimental as experimental
+    from . import inputs as inputs
     from . import learned as learned
+    from . import loads as loads
+    from . import plot as plot
+    from . import rotations as rotations
+    from . import systems as systems
 
 #: Subpackages imported on first access (PEP 562), not by ``import jaxlag``.
-_ON_FIRST_USE = ("experimental", "learned")
+_ON_FIRST_USE = (
+    "analysis",
+    "contact",
+    "coordinates",
+    "experimental",
+    "inputs",
+    "learned",
+    "loads",
+    "plot",
+    "rotations",
+    "systems",
+)
 
 
 def __getattr__(name: str):
