@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .._custom_types import Args
-from .lagrangian import _unit_basis, _velocity_terms, mass_along, mass_and_velocity_terms
+from .lagrangian import _unit_basis, _velocity_terms, mass_along
 from .mass_solve import Factorization
 
 
@@ -112,10 +112,9 @@ class AbstractDynamics(eqx.Module):
 class AutodiffDynamics(AbstractDynamics):
     r"""``M`` and ``F_L`` by automatic differentiation of ``L`` (the default).
 
-    The gradient ``(∂L/∂q, ∂L/∂q̇)`` pushed forward along ``(q̇, 0, 1)`` in ``(q, q̇, t)`` gives
-    ``∂L/∂q`` and ``(∂p/∂q) q̇ + ∂p/∂t``, along the n unit directions in ``q̇`` the rows of ``M``
-    (``p = ∂L/∂q̇``): the n + 1 ``jvp``s batched, the gradient evaluated once. Cost ``O(n)``
-    evaluations of ``L``'s gradient per state.
+    One ``jvp`` of the gradient ``(∂L/∂q, ∂L/∂q̇)`` along ``(q̇, 0, 1)`` in ``(q, q̇, t)`` gives
+    ``∂L/∂q`` and ``(∂p/∂q) q̇ + ∂p/∂t``; n ``jvp``s of ``p = ∂L/∂q̇`` along the unit directions
+    in ``q̇`` give ``M``. Cost ``O(n)`` evaluations of ``L``'s gradient per state.
     """
 
     def mass_matrix(
@@ -138,16 +137,6 @@ class AutodiffDynamics(AbstractDynamics):
     ) -> Float[Array, " n"]:
         dL_dq, _, dp_motion = _velocity_terms(system, q, qd, t, args)
         return dL_dq - dp_motion
-
-    def mass_and_forces(
-        self,
-        system: eqx.Module,
-        q: Float[Array, " n"],
-        qd: Float[Array, " n"],
-        t: Float[Array, ""],
-        args: Args,
-    ) -> tuple[Float[Array, "n n"], Float[Array, " n"]]:
-        return mass_and_velocity_terms(system, q, qd, t, args)
 
     def dependence_mass(
         self,

@@ -57,29 +57,6 @@ def _velocity_terms(system, q, qd, t, args):
     return dL_dq, p, dp_motion
 
 
-def mass_and_velocity_terms(system, q, qd, t, args):
-    """``(M, F_L)`` from one linearization of the gradient ``(∂L/∂q, ∂L/∂q̇)``: its ``jvp``s
-    along the n unit directions in ``q̇`` (their ``p`` part: the rows of ``M``) and along
-    ``(q̇, 0, 1)`` (``(∂p/∂q) q̇ + ∂p/∂t``) batched together, the gradient itself evaluated once
-    (`mass_along` and `_velocity_terms` each evaluate it: twice the program)."""
-    L = system.lagrangian
-    n = q.shape[0]
-
-    def gradient(q_, qd_, t_):
-        return jax.grad(lambda a, b, c: L(a, b, t=c, args=args), argnums=(0, 1))(q_, qd_, t_)
-
-    basis = _unit_basis(qd)
-    along_q = jnp.concatenate([jnp.zeros_like(basis), qd[None]])
-    along_qd = jnp.concatenate([basis, jnp.zeros_like(qd)[None]])
-    along_t = jnp.concatenate([jnp.zeros((n,), t.dtype), jnp.ones((1,), t.dtype)])
-
-    def pushed(dq, dqd, dt):
-        return jax.jvp(gradient, (q, qd, t), (dq, dqd, dt))
-
-    (dL_dq, _), (_, dp) = jax.vmap(pushed, out_axes=(None, 0))(along_q, along_qd, along_t)
-    return dp[:n], dL_dq - dp[n]
-
-
 def _mass_and_lagrangian_forces(system, q, qd, t, args):
     """``(M, F_L)`` from the system's dynamics (``t`` already an array)."""
     if system.constant_mass is not None:
