@@ -34,16 +34,16 @@ class GuardState(eqx.Module):
     scale: Float[Array, ""]  # time scale of the solve: max(|t0|, |t1|, t1 − t0)
 
 
-def _guarded_init(controller, initial_step, time_scale, terms, t0, t1, y0, dt0, args, func, error_order):
-    if initial_step is not None:
-        dt0 = initial_step
-    tnext, inner = controller.init(terms, t0, t1, y0, dt0, args, func, error_order)
+def _guarded_init(guard, terms, t0, t1, y0, dt0, args, func, error_order):
+    """``init`` of either guard: the wrapped controller's, with the guard's ``dt0`` and record."""
+    if guard.initial_step is not None:
+        dt0 = guard.initial_step
+    tnext, inner = guard.controller.init(terms, t0, t1, y0, dt0, args, func, error_order)
     q, qd = y0
     t0 = jnp.asarray(t0, q.dtype)
-    if time_scale is None:
+    scale = guard.time_scale
+    if scale is None:
         scale = jnp.maximum(jnp.maximum(jnp.abs(t0), jnp.abs(t1)), jnp.abs(t1 - t0))
-    else:
-        scale = time_scale
     record = jax.lax.stop_gradient((t0, jnp.asarray(tnext - t0, q.dtype), q, qd, jnp.asarray(scale, q.dtype)))
     state = GuardState(inner, *record[:4], jnp.asarray(False), jnp.asarray(False), record[4])
     return tnext, state
@@ -85,19 +85,7 @@ class FiniteStepGuard(ForwardingAdaptiveController):
         return FiniteStepGuard(wrapped, step, self.time_scale)  # pyright: ignore[reportCallIssue]
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
-        return _guarded_init(
-            self.controller,
-            self.initial_step,
-            self.time_scale,
-            terms,
-            t0,
-            t1,
-            y0,
-            dt0,
-            args,
-            func,
-            error_order,
-        )
+        return _guarded_init(self, terms, t0, t1, y0, dt0, args, func, error_order)
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
         return _guarded_adapt(
@@ -117,19 +105,7 @@ class FiniteFixedStepGuard(diffrax.AbstractStepSizeController):
         return FiniteFixedStepGuard(wrapped, step, self.time_scale)
 
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
-        return _guarded_init(
-            self.controller,
-            self.initial_step,
-            self.time_scale,
-            terms,
-            t0,
-            t1,
-            y0,
-            dt0,
-            args,
-            func,
-            error_order,
-        )
+        return _guarded_init(self, terms, t0, t1, y0, dt0, args, func, error_order)
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
         return _guarded_adapt(
