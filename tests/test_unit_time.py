@@ -63,10 +63,24 @@ def test_which_solves_take_the_unit_interval():
     assert not unit_time.unit_time_applies(diffrax.Tsit5(), clipped, saves, forward, None)
     event = diffrax.Event(lambda t, y, args, **kwargs: t - 0.5)
     assert not unit_time.unit_time_applies(diffrax.Tsit5(), guard(pid), saves, forward, event)
+    # Save times of a saveat= of your own are diffrax's (in the run's time): real time.
+    own_times = diffrax.SaveAt(ts=jnp.linspace(0, 1, 3))
+    assert not unit_time.unit_time_applies(diffrax.Tsit5(), guard(pid), own_times, forward, None)
     dense = diffrax.SaveAt(dense=True)
     assert not unit_time.unit_time_applies(diffrax.Tsit5(), guard(pid), dense, forward, None)
     backsolve = diffrax.BacksolveAdjoint()
     assert not unit_time.unit_time_applies(diffrax.Tsit5(), guard(pid), saves, backsolve, None)
+
+
+def test_a_saveat_with_times_of_its_own():
+    # diffrax saves at these times itself: the solve stays in the run's time.
+    ts = jnp.linspace(5.0, 7.5, 11)
+    traj = jl.simulate(
+        DRIVEN, jnp.array([0.3]), jnp.array([-0.2]), None, t0=5.0, t1=7.5, saveat=diffrax.SaveAt(ts=ts)
+    )
+    np.testing.assert_array_equal(np.asarray(traj.t), np.asarray(ts))
+    expected = _closed_form(np.asarray(ts), 5.0, 0.3, -0.2)
+    np.testing.assert_allclose(np.asarray(traj.q[:, 0]), expected, atol=2e-9)
 
 
 def test_constant_steps_in_unit_time():

@@ -101,13 +101,18 @@ def _base_solver(solver):
 
 
 def _default_save(saveat: diffrax.SaveAt, allowed: tuple) -> bool:
-    """Every save of ``saveat`` saves the state (or is one of ``allowed``), none asks for dense
-    output or the solver state (whose times would be in ``s``)."""
+    """Every save of ``saveat`` is one of ``allowed`` (save functions whose times the caller maps
+    itself) or saves the state at ``t0``, ``t1`` or the steps; none gives times of its own
+    (diffrax would read them as values of ``s``) or asks for dense output or the solver state."""
     subs = jax.tree.leaves(saveat.subs, is_leaf=lambda x: isinstance(x, diffrax.SubSaveAt))
     default = diffrax.SubSaveAt(t1=True).fn
-    return not (saveat.dense or saveat.solver_state) and all(
-        isinstance(sub, diffrax.SubSaveAt) and (sub.fn is default or sub.fn in allowed) for sub in subs
-    )
+
+    def mapped(sub) -> bool:
+        if not isinstance(sub, diffrax.SubSaveAt):
+            return False
+        return sub.fn in allowed or (sub.fn is default and sub.ts is None)
+
+    return not (saveat.dense or saveat.solver_state) and all(mapped(sub) for sub in subs)
 
 
 def unit_time_applies(solver, controller, saveat, adjoint, event, allowed_saves: tuple = ()) -> bool:
