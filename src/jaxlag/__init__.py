@@ -6,9 +6,10 @@ compiled, differentiable diffrax simulation. Sign convention everywhere:
 
 Importing jaxlag changes no JAX setting; `enable_compilation_cache` is the opt-in for a
 cross-process compilation cache. The sub-namespaces (``jaxlag.systems``, ``jaxlag.analysis``,
-``jaxlag.learned`` with optax's training code, ``jaxlag.experimental`` with Pallas, ...) are
-imported on first use (``jl.systems``, ``import jaxlag.systems``), so that a script pays only for
-the ones it uses.
+``jaxlag.learned`` with optax's training code, ``jaxlag.experimental`` with Pallas, ...) and the
+fitting API (``jl.fit``, ``jl.Experiment``, ..., with optax) are imported on first use
+(``jl.systems``, ``import jaxlag.systems``, ``jl.fit``, ``from jaxlag import fit``), so that a
+script pays only for what it uses.
 """
 
 import importlib
@@ -51,26 +52,6 @@ from ._events import (
 from ._events import (
     multiplier_limit as multiplier_limit,
 )
-from ._fit.combinations import IdentifiableCombination as IdentifiableCombination
-from ._fit.data import Experiment as Experiment
-from ._fit.fit import fit as fit
-from ._fit.fit import least_squares_loss as least_squares_loss
-from ._fit.options import (
-    Bounded as Bounded,
-)
-from ._fit.options import (
-    FitWarning as FitWarning,
-)
-from ._fit.options import (
-    MultiStart as MultiStart,
-)
-from ._fit.options import (
-    Positive as Positive,
-)
-from ._fit.options import (
-    Shooting as Shooting,
-)
-from ._fit.statistics import FitResult as FitResult
 from ._mechanics.dynamics import (
     AbstractDynamics as AbstractDynamics,
 )
@@ -129,6 +110,16 @@ if TYPE_CHECKING:
     from . import plot as plot
     from . import rotations as rotations
     from . import systems as systems
+    from ._fit.combinations import IdentifiableCombination as IdentifiableCombination
+    from ._fit.data import Experiment as Experiment
+    from ._fit.fit import fit as fit
+    from ._fit.fit import least_squares_loss as least_squares_loss
+    from ._fit.options import Bounded as Bounded
+    from ._fit.options import FitWarning as FitWarning
+    from ._fit.options import MultiStart as MultiStart
+    from ._fit.options import Positive as Positive
+    from ._fit.options import Shooting as Shooting
+    from ._fit.statistics import FitResult as FitResult
 
 #: Subpackages imported on first access (PEP 562), not by ``import jaxlag``.
 _ON_FIRST_USE = (
@@ -145,11 +136,30 @@ _ON_FIRST_USE = (
 )
 
 
+#: The fitting API (and optax, which it imports), loaded on first access: name -> module.
+_FIT_ON_FIRST_USE = {
+    "Bounded": "._fit.options",
+    "Experiment": "._fit.data",
+    "FitResult": "._fit.statistics",
+    "FitWarning": "._fit.options",
+    "IdentifiableCombination": "._fit.combinations",
+    "MultiStart": "._fit.options",
+    "Positive": "._fit.options",
+    "Shooting": "._fit.options",
+    "fit": "._fit.fit",
+    "least_squares_loss": "._fit.fit",
+}
+
+
 def __getattr__(name: str):
     if name in _ON_FIRST_USE:
         return importlib.import_module(f"{__name__}.{name}")
+    if name in _FIT_ON_FIRST_USE:
+        value = getattr(importlib.import_module(_FIT_ON_FIRST_USE[name], __name__), name)
+        globals()[name] = value  # later lookups skip __getattr__
+        return value
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return sorted({*globals(), *_ON_FIRST_USE})
+    return sorted({*globals(), *_ON_FIRST_USE, *_FIT_ON_FIRST_USE})
