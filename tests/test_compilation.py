@@ -308,3 +308,34 @@ def test_solver_step_traced_once_per_solve(constrained):
     # A wrapped solver takes the general path (vmap of jvp of the traced solve), whose step is
     # the one simulate traced above (same solver, same shapes): served from the cache.
     assert len(solver.calls) <= 1
+
+
+def test_equations_of_motion_traced_once_and_compiled_once():
+    """``jl.EquationsOfMotion`` is jitted: the first call traces the Lagrangian, later calls at
+    other times (Python floats: not static) and other traces with the same shapes reuse that
+    trace (diffrax's term check, its first step size and the solver step share it), and an eager
+    call compiles one program. Closed form on the sphere r = R: r̈ = 0, θ̈ = (g/R) sin θ."""
+    calls = []
+
+    def lagrangian(q, qd, args):
+        calls.append(1)
+        return _sphere_lagrangian(q, qd, args)
+
+    system = jl.System(lagrangian, holonomic=lambda q, args: jnp.array([q[0] - args["R"]]))
+    field = jl.EquationsOfMotion(system)
+    args = {"m": 1.0, "g": 9.81, "R": 2.0}
+    y = (jnp.array([2.0, 0.3]), jnp.zeros(2))
+    field(0.0, y, args)
+    traced = len(calls)
+    with compilations() as count:
+        outs = [field(t, y, args) for t in (0.1, 0.2, 0.3)]
+    assert count == [0] and len(calls) == traced
+    for qd, qdd in outs:
+        np.testing.assert_allclose(qdd, [0.0, 9.81 / 2.0 * np.sin(0.3)], rtol=0, atol=1e-12)
+    jax.make_jaxpr(lambda y: field(jnp.asarray(0.5), y, args))(y)
+    assert len(calls) == traced
+    thetas = jnp.linspace(-1.0, 1.0, 5)
+    batched = jax.vmap(lambda th: field(0.0, (jnp.array([2.0, th]), jnp.zeros(2)), args)[1][1])(thetas)
+    np.testing.assert_allclose(batched, 9.81 / 2.0 * np.sin(thetas), rtol=0, atol=1e-12)
+    slope = jax.jit(jax.grad(lambda th: field(0.0, (jnp.array([2.0, th]), jnp.zeros(2)), args)[1][1]))(0.3)
+    np.testing.assert_allclose(slope, 9.81 / 2.0 * np.cos(0.3), rtol=0, atol=1e-12)

@@ -162,7 +162,17 @@ class Projection(eqx.Module):
         args: Args,
         active: Bool[Array, " m_h"] | None = None,
     ) -> tuple[Vector, Vector]:
-        return project_state(system, q, qd, t, args, self.newton_steps, active)
+        if isinstance(t, (int, float)):  # an array: not a static argument of the jit below
+            t = jnp.asarray(t)
+        return _projected(system, q, qd, t, args, self.newton_steps, active)
+
+
+# Jitted: the step's projection, the projection of the saved states (its vmap) and the pushed
+# projection of the forward sensitivities share one trace of it.
+@compilation.filter_jit
+def _projected(system, q, qd, t, args, newton_steps, active):
+    """`Projection.__call__`."""
+    return project_state(system, q, qd, t, args, newton_steps, active)
 
 
 class ProjectedSolver(ForwardingSolver, diffrax.AbstractWrappedSolver):

@@ -6,8 +6,10 @@ constrained system, ``M q̈ = F`` otherwise; with Coulomb friction in a given st
 """
 
 import equinox as eqx
+import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from . import _compile as compilation
 from ._custom_types import Args, RealScalarLike, Vector
 from ._mechanics.friction import solve_with_modes
 from ._mechanics.kkt import accelerations_and_multipliers
@@ -29,7 +31,6 @@ class EquationsOfMotion(eqx.Module):
     modes: Float[Array, " k"] | None = None
 
     def __call__(self, t: RealScalarLike, y: tuple[Vector, Vector], args: Args) -> tuple[Vector, Vector]:
-        q, qd = y
         if self.system.friction and self.modes is None:
             raise ValueError(
                 "This system has Coulomb friction (jl.Coulomb), whose equations depend on the "
@@ -37,10 +38,24 @@ class EquationsOfMotion(eqx.Module):
                 "the switches); pass EquationsOfMotion(system, baumgarte, active, modes) to use "
                 "the field directly. The ensemble and variational integrators do not support it."
             )
-        if self.modes is not None and self.system.friction:
-            qdd = solve_with_modes(self.system, q, qd, t, args, self.baumgarte, self.active, self.modes)[0]
-        elif self.system.is_constrained:
-            qdd = accelerations_and_multipliers(self.system, q, qd, t, args, self.baumgarte, self.active)[0]
-        else:
-            qdd = unconstrained_accelerations(self.system, q, qd, t, args)
-        return qd, qdd
+        if isinstance(t, (int, float)):  # an array (weakly typed, as the scalar was): not a static
+            t = jnp.asarray(t)  # argument of the jit below, which would compile each value anew
+        # Jitted: diffrax's term check, its first step size and the solver step (each traces the
+        # field) share one trace of the equations of motion; XLA inlines the call.
+        return _equations_of_motion(self, t, y, args)
+
+
+# jaxlag's jit: keyed on the compiled checks' choice in force (checks inside the user's functions),
+# compiled with jaxlag's options when called eagerly.
+@compilation.filter_jit
+def _equations_of_motion(field: EquationsOfMotion, t, y, args):
+    """`EquationsOfMotion.__call__`."""
+    q, qd = y
+    system = field.system
+    if field.modes is not None and system.friction:
+        qdd = solve_with_modes(system, q, qd, t, args, field.baumgarte, field.active, field.modes)[0]
+    elif system.is_constrained:
+        qdd = accelerations_and_multipliers(system, q, qd, t, args, field.baumgarte, field.active)[0]
+    else:
+        qdd = unconstrained_accelerations(system, q, qd, t, args)
+    return qd, qdd
