@@ -42,6 +42,7 @@ import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
 from . import _compile as compilation
+from ._misc import is_concrete
 
 
 class ForwardSensitivities(eqx.Module):
@@ -149,10 +150,10 @@ def _unit_tangents(shapes, sizes, k):
     return tangents, axes
 
 
-@compilation.filter_jit
-def _contract(sensitivities, cotangents, sizes, shapes):
+def _contract_values(xp, sensitivities, cotangents, sizes, shapes):
     """``θ̄ = Sᵀȳ``: the gradient of every input from the sensitivities ``S`` (k leading) and the
-    cotangents of the outputs (None where symbolically zero), split back into input shapes."""
+    cotangents of the outputs (None where symbolically zero), split back into input shapes.
+    ``xp``: the array namespace, ``jax.numpy`` inside a program, NumPy on the host."""
     total = None
     for s, c in zip(sensitivities, cotangents, strict=True):
         if c is None:
@@ -161,17 +162,38 @@ def _contract(sensitivities, cotangents, sizes, shapes):
         # Outputs the loss ignores (cotangent exactly 0) contribute 0, even where their
         # sensitivities are not finite: the saved states of a run that failed (inf after the
         # failure, a learned mass matrix gone indefinite) must not make 0 · inf = NaN.
-        s = jnp.where(c[None] == 0, jnp.zeros((), s.dtype), s)
-        term = jnp.tensordot(s, c, axes=c.ndim)
+        s = xp.where(c[None] == 0, xp.zeros((), s.dtype), s)
+        term = xp.tensordot(s, c, axes=c.ndim)
         total = term if total is None else total + term
     grads, offset = [], 0
     for (shape, dtype), size in zip(shapes, sizes):
         if size and total is not None:
             grads.append(total[offset : offset + size].reshape(shape).astype(dtype))
         else:
-            grads.append(jnp.zeros(shape, dtype))
+            grads.append(xp.zeros(shape, dtype))
         offset += size
     return grads
+
+
+@compilation.filter_jit
+def _contract(sensitivities, cotangents, sizes, shapes):
+    """`_contract_values` as one program (traced sensitivities or cotangents: a user's jit)."""
+    return _contract_values(jnp, sensitivities, cotangents, sizes, shapes)
+
+
+def _contracted(sensitivities, cotangents, sizes, shapes):
+    """`_contract_values` on the host when every value is known there (an eager ``jax.grad``:
+    no program of its own for each shape of loss), else `_contract`."""
+    if not is_concrete((sensitivities, cotangents)):
+        return _contract(sensitivities, cotangents, sizes, shapes)
+    host = _contract_values(
+        np,
+        [np.asarray(s) for s in sensitivities],
+        [None if c is None else np.asarray(c) for c in cotangents],
+        sizes,
+        shapes,
+    )
+    return [jax.device_put(g) for g in host]  # a transfer (jnp.asarray compiles a program)
 
 
 @compilation.filter_jit
@@ -359,7 +381,7 @@ def call_with_forward_sensitivities(
         if sensitivities is None:
             grads = [jnp.zeros(shape, dtype) for shape, dtype in shapes]
         else:
-            grads = _contract(
+            grads = _contracted(
                 jax.tree.leaves(sensitivities),
                 [None if _is_symbolic_zero(c) else c for c in cotangents],
                 tuple(decided["sizes"]),
