@@ -339,3 +339,58 @@ def test_equations_of_motion_traced_once_and_compiled_once():
     np.testing.assert_allclose(batched, 9.81 / 2.0 * np.sin(thetas), rtol=0, atol=1e-12)
     slope = jax.jit(jax.grad(lambda th: field(0.0, (jnp.array([2.0, th]), jnp.zeros(2)), args)[1][1]))(0.3)
     np.testing.assert_allclose(slope, 9.81 / 2.0 * np.cos(0.3), rtol=0, atol=1e-12)
+
+
+def test_projection_traced_once_and_transformed():
+    """``jl.Projection`` is jitted: the step's projection, the projection of the saved states
+    (a ``vmap``) and the forward sensitivities' (a ``jvp``) transform one trace of it, so the
+    user's constraint is not traced again for other times, under ``vmap`` or ``jax.jvp``. The
+    projection lands on the sphere r = R with the radial velocity removed."""
+    calls = []
+
+    def on_sphere(q, args):
+        calls.append(1)
+        return jnp.array([q[0] - args["R"]])
+
+    system = jl.System(_sphere_lagrangian, holonomic=on_sphere)
+    args = {"m": 1.0, "g": 9.81, "R": 2.0}
+    project = jl.Projection()
+    q, qd = jnp.array([2.01, 0.3]), jnp.array([0.1, 0.5])
+    q1, qd1 = project(system, q, qd, 0.0, args)
+    traced = len(calls)
+    project(system, q, qd, 0.7, args)
+    at_zero = lambda x: project(system, x, qd, jnp.asarray(0.0), args)  # noqa: E731
+    qs, _ = jax.vmap(at_zero)(jnp.stack([q, q + 0.001]))
+    _, (dq, _) = jax.jvp(at_zero, (q,), (jnp.array([1.0, 0.0]),))
+    assert len(calls) == traced
+    np.testing.assert_allclose(q1, [2.0, 0.3], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(qd1, [0.0, 0.5], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(qs[:, 0], 2.0, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(dq, [0.0, 0.0], rtol=0, atol=1e-12)  # r is held at R
+
+
+def test_eager_gradient_contracts_on_the_host():
+    """An eager ``jax.grad`` through ``simulate`` compiles no program for ``θ̄ = Sᵀȳ`` (the
+    sensitivities are contracted in NumPy) and equals the same gradient under ``jax.jit``."""
+    names = []
+
+    def listen(event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            names.append(kwargs.get("fun_name"))
+
+    ts = jnp.linspace(0.0, 1.0, 13)
+
+    def loss(a):
+        return jnp.sum(jl.simulate(PENDULUM, jnp.array([0.5]), jnp.zeros(1), ts, args=a).q ** 2)
+
+    args = {"g": 9.81, "l": 0.8}
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        eager = jax.grad(loss)(args)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert isinstance(eager["g"], jax.Array) and eager["g"].dtype == jnp.float64
+    assert not [n for n in names if n and "_contract" in n]
+    compiled = jax.jit(jax.grad(loss))(args)
+    for key in args:
+        np.testing.assert_allclose(eager[key], compiled[key], rtol=1e-12)
