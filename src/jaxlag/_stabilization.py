@@ -162,8 +162,9 @@ class Projection(eqx.Module):
         args: Args,
         active: Bool[Array, " m_h"] | None = None,
     ) -> tuple[Vector, Vector]:
-        if isinstance(t, (int, float)):  # an array: not a static argument of the jit below
+        if isinstance(t, (int, float)):  # arrays: not static arguments of the jit below
             t = jnp.asarray(t)
+        args = as_array_leaves(args, q.dtype)
         return _projected(system, q, qd, t, args, self.newton_steps, active)
 
 

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from . import _compile as compilation
+from ._conventions import as_array_leaves
 from ._custom_types import Args, RealScalarLike, Vector
 from ._mechanics.friction import solve_with_modes
 from ._mechanics.kkt import accelerations_and_multipliers
@@ -38,8 +39,11 @@ class EquationsOfMotion(eqx.Module):
                 "the switches); pass EquationsOfMotion(system, baumgarte, active, modes) to use "
                 "the field directly. The ensemble and variational integrators do not support it."
             )
-        if isinstance(t, (int, float)):  # an array (weakly typed, as the scalar was): not a static
-            t = jnp.asarray(t)  # argument of the jit below, which would compile each value anew
+        # Arrays, not static arguments of the jit below (which would compile each value anew):
+        # a Python-number time (weakly typed, as the scalar was) and the Python floats of args.
+        if isinstance(t, (int, float)):
+            t = jnp.asarray(t)
+        args = as_array_leaves(args, y[0].dtype)
         # Jitted: diffrax's term check, its first step size and the solver step (each traces the
         # field) share one trace of the equations of motion; XLA inlines the call.
         return _equations_of_motion(self, t, y, args)
