@@ -214,3 +214,13 @@ def as_array_leaves(tree, dtype=None):
         return x
 
     return jax.tree.map(convert, tree)
+
+
+def as_jit_inputs(t, args, dtype):
+    """``(t, args)`` for a jitted function of the state: a Python-number ``t`` as a (weakly typed)
+    array and the Python floats of ``args`` as arrays (`as_array_leaves`), so that a new time or
+    parameter value is an input of the compiled program rather than a static value that compiles
+    it anew."""
+    if isinstance(t, (int, float)):
+        t = jnp.asarray(t)
+    return t, as_array_leaves(args, dtype)

@@ -29,7 +29,7 @@ import numpy as np
 from jaxtyping import Array, Bool
 
 from . import _compile as compilation
-from ._conventions import as_array_leaves, as_jax_array
+from ._conventions import as_array_leaves, as_jax_array, as_jit_inputs
 from ._custom_types import Args, Coordinates, RealScalarLike, Vector, Velocities
 from ._errors import compiled_check
 from ._mechanics import constraints as _constraints
@@ -162,9 +162,7 @@ class Projection(eqx.Module):
         args: Args,
         active: Bool[Array, " m_h"] | None = None,
     ) -> tuple[Vector, Vector]:
-        if isinstance(t, (int, float)):  # arrays: not static arguments of the jit below
-            t = jnp.asarray(t)
-        args = as_array_leaves(args, q.dtype)
+        t, args = as_jit_inputs(t, args, q.dtype)
         return _projected(system, q, qd, t, args, self.newton_steps, active)
 
 

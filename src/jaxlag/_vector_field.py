@@ -6,11 +6,10 @@ constrained system, ``M q̈ = F`` otherwise; with Coulomb friction in a given st
 """
 
 import equinox as eqx
-import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from . import _compile as compilation
-from ._conventions import as_array_leaves
+from ._conventions import as_jit_inputs
 from ._custom_types import Args, RealScalarLike, Vector
 from ._mechanics.friction import solve_with_modes
 from ._mechanics.kkt import accelerations_and_multipliers
@@ -39,11 +38,7 @@ class EquationsOfMotion(eqx.Module):
                 "the switches); pass EquationsOfMotion(system, baumgarte, active, modes) to use "
                 "the field directly. The ensemble and variational integrators do not support it."
             )
-        # Arrays, not static arguments of the jit below (which would compile each value anew):
-        # a Python-number time (weakly typed, as the scalar was) and the Python floats of args.
-        if isinstance(t, (int, float)):
-            t = jnp.asarray(t)
-        args = as_array_leaves(args, y[0].dtype)
+        t, args = as_jit_inputs(t, args, y[0].dtype)
         # Jitted: diffrax's term check, its first step size and the solver step (each traces the
         # field) share one trace of the equations of motion; XLA inlines the call.
         return _equations_of_motion(self, t, y, args)
