@@ -18,8 +18,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
+from .. import _compile as compilation
 from .._batch.batch import simulate_batch
 from .._checks import Checks
+from .._conventions import as_jit_inputs
 from .._custom_types import Args, RealScalarLike
 from .._mechanics import kkt as _kkt
 from .._mechanics import lagrangian as _lagrangian
@@ -63,6 +65,15 @@ def accelerations(
     if not isinstance(system.mass_solve, RobustSolve):
         system = eqx.tree_at(lambda s: s.mass_solve, system, RobustSolve())
     q, qd = jnp.asarray(q), jnp.asarray(qd)
+    t, args = as_jit_inputs(t, args, q.dtype if jnp.issubdtype(q.dtype, jnp.floating) else None)
+    return _solved_accelerations(system, q, qd, t, args)
+
+
+@compilation.filter_jit(cpu_options=False)
+def _solved_accelerations(system, q, qd, t, args):
+    """`accelerations`, one program per system (its arrays are inputs) and shapes: an eager call,
+    or an eager ``jax.vmap`` of it, compiles once instead of one program per operation; inside a
+    ``jit`` it is inlined."""
     t = _lagrangian.as_time(t, q)
     return _kkt.accelerations_and_multipliers(system, q, qd, t, args)[0]
 
@@ -90,6 +101,14 @@ def _scaled(error: Array, scale: Array | None) -> Array:
     return error if scale is None else error / jnp.broadcast_to(scale, error.shape)
 
 
+@compilation.filter_jit(cpu_options=False)
+def _loss_value(loss, model, data):
+    """A built-in loss's value, one program per loss, model structure and data shapes (the
+    model's weights and the data are its inputs): an eager call compiles once instead of one
+    program per operation, and inside ``jit`` or ``grad`` (`train_step`) it is inlined."""
+    return loss._value(model, data)
+
+
 class AbstractLoss(eqx.Module):
     """A loss ``loss(model, data) -> LossValue`` (a Module: its options are fields)."""
 
@@ -115,6 +134,9 @@ class AccelerationLoss(AbstractLoss):
     scale: Float[Array, " n"] | None = None
 
     def __call__(self, model: Model, data: StateData) -> LossValue:  # pyright: ignore[reportIncompatibleMethodOverride]
+        return _loss_value(self, model, data)
+
+    def _value(self, model: Model, data: StateData) -> LossValue:
         # Rows of the data that are not finite are replaced by the first finite row before the
         # model sees them: the backward pass through them would be 0 · NaN (module docstring).
         ok = finite_rows(data.q, data.qd, data.qdd, data.forces)
@@ -223,6 +245,9 @@ class RolloutLoss(AbstractLoss):
         return traj.q, traj.qd, ok
 
     def __call__(self, model: Model, data: TrajectoryData) -> LossValue:  # pyright: ignore[reportIncompatibleMethodOverride]
+        return _loss_value(self, model, data)
+
+    def _value(self, model: Model, data: TrajectoryData) -> LossValue:
         # Members whose data are not finite (refused by TrajectoryData when built eagerly, not
         # under jit) fail too: their rows are replaced by a finite member's before any arithmetic.
         ok = finite_rows(data.q, data.qd)
@@ -267,7 +292,10 @@ class MultipleShootingLoss(AbstractLoss):
     rollout: RolloutLoss = RolloutLoss()
 
     def __call__(self, model: Model, data: TrajectoryData) -> LossValue:  # pyright: ignore[reportIncompatibleMethodOverride]
-        return self.rollout(model, segments(data, self.length))
+        return _loss_value(self, model, data)
+
+    def _value(self, model: Model, data: TrajectoryData) -> LossValue:
+        return self.rollout._value(model, segments(data, self.length))
 
 
 def state_data(model: Model, data: TrajectoryData, args: Args = None) -> StateData:
