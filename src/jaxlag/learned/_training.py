@@ -29,6 +29,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray, PyTree
 
+from .. import _compile as compilation
 from ._data import batch_size as _rows
 from ._data import check_values, take
 from ._losses import LossValue
@@ -46,10 +47,17 @@ def train_step(
     Gradients are taken with ``eqx.filter_value_and_grad`` with respect to the model's
     floating-point arrays (static leaves such as activation functions pass through); the optax
     ``optimizer`` turns them into updates, applied with ``eqx.apply_updates``. The returned
-    `LossValue` is the loss *before* the update. Pure: wrap it in ``eqx.filter_jit``, and
-    ``jax.vmap`` it (with ``eqx.filter_vmap``) over an ensemble of models.
+    `LossValue` is the loss *before* the update. Pure, and compiled once per model structure,
+    loss, optimizer and data shapes (the weights, the optimizer state and the data are inputs of
+    the program): an eager call runs one program, and inside your ``eqx.filter_jit`` (or
+    ``eqx.filter_vmap`` over an ensemble of models) it is inlined. Pass the same ``loss`` and
+    ``optimizer`` at every step: a new ``optax.adam(...)`` or a new ``lambda`` is a new program.
     """
+    return _train_step(model, opt_state, data, loss, optimizer)
 
+
+@compilation.filter_jit(cpu_options=False)
+def _train_step(model, opt_state, data, loss, optimizer):
     value, grads, updates, opt_state = _value_and_update(model, opt_state, data, loss, optimizer)
     return eqx.apply_updates(model, updates), opt_state, value
 
@@ -111,6 +119,17 @@ def _draw(data, key, batch):
 # Module level, so that every call of `train` with the same model structure, loss, optimizer and
 # minibatch shapes reuses one compiled step (the data set's size is not part of the program).
 _step = eqx.filter_jit(_guarded_step)
+
+
+@eqx.filter_jit
+def _init_state(optimizer, params):
+    """``optimizer.init(params)`` as one program (eagerly, one per leaf of the state)."""
+    return optimizer.init(params)
+
+
+@eqx.filter_jit
+def _split_keys(key, steps):
+    return jax.random.split(key, steps)
 
 
 @eqx.filter_jit
@@ -209,7 +228,7 @@ def train(
             raise ValueError(f"train: the model's weights model{jax.tree_util.keystr(path)} are not finite.")
     if key is None:
         key = jax.random.PRNGKey(0)
-    opt_state = optimizer.init(initial)
+    opt_state = _init_state(optimizer, initial)
     iterator = range(steps)
     bar = None
     if progress:
@@ -223,7 +242,7 @@ def train(
     validation_loss, validation_steps = [], []
     best_value, best_model, best_step, bad = math.inf, model, 0, 0
     stopped = False
-    keys = jax.random.split(key, steps)
+    keys = None if batch_size is None else _split_keys(key, steps)
     for i in iterator:
         if validation is not None and i % validate_every == 0:
             value = float(_evaluate(model, validation, loss).value)
@@ -239,7 +258,7 @@ def train(
                 if patience is not None and bad >= patience:
                     stopped = True
                     break
-        batch = data if batch_size is None else _draw(data, keys[i], batch_size)
+        batch = data if keys is None else _draw(data, keys[i], batch_size)
         model, opt_state, out, code, descent = _step(model, opt_state, batch, loss, optimizer)
         if i == 0:
             _check_first_step(int(code), float(descent))
@@ -250,7 +269,7 @@ def train(
             bar.set_postfix(loss=float(out.value))
     if bar is not None:
         bar.close()
-    skipped = np.asarray(jnp.stack(codes)) if codes else np.zeros((0,), np.int32)
+    skipped = np.asarray(jax.device_get(codes)) if codes else np.zeros((0,), np.int32)
     _report_skipped(skipped)
     if codes and not np.any(skipped) and _unchanged(initial, eqx.filter(model, eqx.is_inexact_array)):
         raise ValueError(
@@ -273,8 +292,9 @@ def train(
             stacklevel=2,
         )
         best_model, best_step = model, len(train_loss)
-    losses = np.asarray(jnp.stack(train_loss)) if train_loss else np.zeros((0,))
-    counts = np.asarray(jnp.stack(failed)) if failed else np.zeros((0,), np.int32)
+    # One transfer of the per-step scalars (a jnp.stack would compile a program per step count).
+    losses = np.asarray(jax.device_get(train_loss)) if train_loss else np.zeros((0,))
+    counts = np.asarray(jax.device_get(failed)) if failed else np.zeros((0,), np.int32)
     return TrainResult(
         best_model,
         losses,
