@@ -179,7 +179,14 @@ def split(
     held = min(max(int(round(validation * n)), 1), n - 1)
     if n < 2:
         raise ValueError(f"split needs at least 2 rows; got {n}.")
-    order = jax.random.permutation(key, n)
+    return _split_rows(data, key, held)
+
+
+@eqx.filter_jit
+def _split_rows(data, key, held):
+    """`split`'s rows, one program per data structure and sizes (eagerly, each indexing would be
+    a program of its own)."""
+    order = jax.random.permutation(key, batch_size(data))
     return take(data, order[held:]), take(data, order[:held])
 
 
@@ -194,8 +201,14 @@ def segments(data: TrajectoryData, length: int) -> TrajectoryData:
     length = int(length)
     if not 2 <= length <= times:
         raise ValueError(f"segments: length must be in [2, {times}] (samples per trajectory); got {length}.")
+    return _cut_segments(data, length)
+
+
+@eqx.filter_jit
+def _cut_segments(data, length):
+    """`segments`, one program per data shapes and ``length`` (a static Python int)."""
     stride = length - 1
-    count = (times - 1) // stride
+    count = (data.ts.shape[1] - 1) // stride
     starts = np.arange(count) * stride
     index = starts[:, None] + np.arange(length)[None, :]
 
