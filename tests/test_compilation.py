@@ -394,3 +394,123 @@ def test_eager_gradient_contracts_on_the_host():
     compiled = jax.jit(jax.grad(loss))(args)
     for key in args:
         np.testing.assert_allclose(eager[key], compiled[key], rtol=1e-12)
+
+
+def _program_names(fn):
+    """``(fn(), names of the programs XLA compiled while it ran)``."""
+    names = []
+
+    def listen(event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            names.append(kwargs.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        out = jax.block_until_ready(fn())
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    return out, names
+
+
+def _pendulum_lagrangian(q, qd):  # l = 1, g = 9.81: θ̈ = −9.81 sin θ
+    return 0.5 * qd[0] ** 2 + 9.81 * jnp.cos(q[0])
+
+
+def test_learned_accelerations_compile_once():
+    """``jll.accelerations`` is one program per model and shapes, eagerly and under an eager
+    ``jax.vmap`` (before: one program per operation, 99–163 of them for a DeLaN): new states
+    and new weights compile nothing, and ``state_data`` is one program. Against θ̈ = −g sin θ."""
+    from jaxlag import learned as jll
+
+    thetas = jnp.linspace(-1.0, 1.0, 7)[:, None]
+    at_rest = jnp.zeros(1)
+    batched = lambda model, q: jax.vmap(lambda a: jll.accelerations(model, a, at_rest))(q)  # noqa: E731
+    qdd, names = _program_names(lambda: batched(_pendulum_lagrangian, thetas))
+    assert len(names) <= 2, names  # the solve, and at most the time 0.0 made an array
+    np.testing.assert_allclose(qdd[:, 0], -9.81 * np.sin(thetas[:, 0]), rtol=0, atol=1e-12)
+    shifted = thetas + 0.1
+    with compilations() as count:
+        again = batched(_pendulum_lagrangian, shifted)
+    assert count == [0]
+    np.testing.assert_allclose(again[:, 0], -9.81 * np.sin(shifted[:, 0]), rtol=0, atol=1e-12)
+
+    model = jll.DeLaN(1, 8, 2, key=jax.random.PRNGKey(0))
+    _, names = _program_names(lambda: batched(model, thetas))
+    assert len(names) <= 2, names
+    other = jll.DeLaN(1, 8, 2, key=jax.random.PRNGKey(1))  # same structure, new weights
+    with compilations() as count:
+        new = batched(other, thetas)
+    assert count == [0]
+    reference = eqx.filter_jit(batched)(other, thetas)
+    np.testing.assert_allclose(new, reference, rtol=1e-12, atol=1e-12)
+
+    ts = jnp.broadcast_to(jnp.linspace(0.0, 1.0, 5), (3, 5))
+    data = jll.TrajectoryData(ts, jnp.broadcast_to(thetas[:3, None], (3, 5, 1)), jnp.zeros((3, 5, 1)))
+    states, names = _program_names(lambda: jll.state_data(_pendulum_lagrangian, data))
+    assert len(names) <= 2, names
+    np.testing.assert_allclose(states.qdd[:, 0], -9.81 * np.sin(states.q[:, 0]), rtol=0, atol=1e-12)
+
+
+def test_learned_losses_and_step_compile_once():
+    """A built-in loss and ``jll.train_step`` called eagerly are one program each (before: 117
+    and 232 for a small DeLaN), reused for new weights, and equal to the same calls under the
+    user's ``eqx.filter_jit``. The loss of the true pendulum on its own accelerations is 0."""
+    import optax
+
+    from jaxlag import learned as jll
+
+    q = jnp.linspace(-1.0, 1.0, 16)[:, None]
+    qd = jnp.linspace(0.5, -0.5, 16)[:, None]
+    states = jll.StateData(q, qd, -9.81 * jnp.sin(q))
+    loss = jll.AccelerationLoss()
+    exact, names = _program_names(lambda: loss(_pendulum_lagrangian, states).value)
+    assert len(names) == 1, names
+    assert float(exact) < 1e-24
+
+    model = jll.DeLaN(1, 8, 2, key=jax.random.PRNGKey(0))
+    value, names = _program_names(lambda: loss(model, states).value)
+    assert len(names) == 1, names
+    np.testing.assert_allclose(value, eqx.filter_jit(lambda m: loss(m, states).value)(model), rtol=1e-12)
+
+    optimizer = optax.adam(1e-3)
+    with jax.numpy_dtype_promotion("standard"):  # optax mixes int32 step counts with floats
+        opt_state = eqx.filter_jit(optimizer.init)(eqx.filter(model, eqx.is_inexact_array))
+        step = lambda m: jll.train_step(m, opt_state, states, loss, optimizer)  # noqa: E731
+        (stepped, _, before), names = _program_names(lambda: step(model))
+        assert len(names) == 1, names
+        with compilations() as count:
+            jax.block_until_ready(step(stepped))
+        by_user = eqx.filter_jit(jll.train_step)(model, opt_state, states, loss, optimizer)[0]
+    assert count == [0]
+    np.testing.assert_allclose(before.value, value, rtol=1e-12)
+    weights = lambda m: jax.tree.leaves(eqx.filter(m, eqx.is_array))  # noqa: E731
+    for a, b in zip(weights(stepped), weights(by_user)):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+
+
+def test_learned_data_helpers_compile_once():
+    """``split`` and ``segments`` are one program each (before: 24 and 11 single operations),
+    with the rows and samples of the NumPy reference; ``train`` stacks its per-step scalars on
+    the host (no ``jit(stack)`` program per step count)."""
+    from jaxlag import learned as jll
+
+    ts = jnp.broadcast_to(jnp.linspace(0.0, 1.0, 9), (4, 9))
+    q = jnp.arange(36.0).reshape(4, 9, 1)
+    data = jll.TrajectoryData(ts, q, -q)
+    cut, names = _program_names(lambda: jll.segments(data, 3))
+    assert len(names) == 1, names
+    reference = np.stack([np.asarray(q)[b, 2 * k : 2 * k + 3] for b in range(4) for k in range(4)])
+    np.testing.assert_array_equal(cut.q, reference)
+    np.testing.assert_array_equal(cut.qd, -reference)
+    (train, held), names = _program_names(lambda: jll.split(data, 0.25, key=jax.random.PRNGKey(0)))
+    assert len(names) == 1, names
+    rows = sorted(int(x) for x in np.concatenate([train.q[:, 0, 0], held.q[:, 0, 0]]))
+    assert rows == [0, 9, 18, 27] and held.q.shape[0] == 1
+
+    states = jll.StateData(q[:, 0], jnp.zeros((4, 1)), -9.81 * jnp.sin(q[:, 0]))
+    model = jll.DeLaN(1, 8, 2, key=jax.random.PRNGKey(0))
+    with jax.numpy_dtype_promotion("standard"):  # optax mixes int32 step counts with floats
+        trained = lambda: jll.train(model, jll.AccelerationLoss(), states, steps=3).train_loss  # noqa: E731
+        result, names = _program_names(trained)
+    assert not [n for n in names if n and "stack" in n], names
+    assert result.shape == (3,) and np.all(np.isfinite(result))
