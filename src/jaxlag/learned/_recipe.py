@@ -114,6 +114,7 @@ class Recipe(eqx.Module):
         )
 
 
+@eqx.filter_jit  # one program (eagerly, each of its operations would be one)
 def balanced_scale(x: Float[Array, "rows n"]) -> Float[Array, " n"]:
     r"""``σ / rms(σ)``, ``σᵢ`` the standard deviation of column ``i`` of ``x`` (a column that does
     not vary counts as the others' RMS): the ``scale`` of a loss that weighs the coordinates
