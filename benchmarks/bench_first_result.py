@@ -17,7 +17,9 @@ run: the ratios against it are the numbers to compare between runs. ``batch1000`
 ``jax.vmap`` of ``diffrax.diffeqsolve`` on the same pendulum, with the same solver (Tsit5),
 controller (PID, rtol = atol = 1e-10), ``max_steps`` and save times. ``fit_demo`` is the fit of the
 README's demo (``examples/demo.py``: ``g`` and ``R`` of a particle on a sphere from noisy camera
-positions), ``fit`` the pendulum of the fitting cookbook page. Each row also gives the CPU time of
+positions), ``fit`` the pendulum of the fitting cookbook page. ``learned`` is a learned model's
+first steps (``jaxlag.learned``: a double pendulum's states and accelerations, a DeLaN, its first
+acceleration loss and 20 training steps), to compare against a baseline checkout. Each row also gives the CPU time of
 the process (all its threads), which a shared machine disturbs less than the wall clock; steps
 named ``after: ...`` (a second call, for its run time) are left out of the totals.
 
@@ -208,6 +210,24 @@ STAGES = {
         step("first vmap of diffeqsolve (B = 1000)")
         jax.block_until_ready(batch(y0s + 0.01, {"g": 9.81}, jnp.linspace(0, 2, 21)))
         step("after: second vmap of diffeqsolve")
+    """,
+    "learned": """
+        import jaxlag as jl
+        from jaxlag import learned as jll
+        step("import")
+        truth = jl.systems.double_pendulum()
+        q = jax.random.uniform(jax.random.PRNGKey(0), (10, 41, 2), minval=-1.0, maxval=1.0)
+        ts = jnp.broadcast_to(jnp.linspace(0.0, 2.0, 41), (10, 41))
+        data = jll.TrajectoryData(ts, q, q[::-1])
+        states = jll.state_data(truth, data)
+        model = jll.DeLaN(2, 16, 2, key=jax.random.PRNGKey(1))
+        jax.block_until_ready(states.qdd)
+        step("data and model")
+        jax.block_until_ready(jll.AccelerationLoss()(model, states).value)
+        step("first loss")
+        result = jll.train(model, jll.AccelerationLoss(), states, steps=20)
+        jax.block_until_ready(result.model)
+        step("train 20 steps")
     """,
     "fit_demo": """
         import jaxlag as jl
