@@ -60,6 +60,8 @@ def accelerations(
     ``rtol · max_i |M_ii|`` or below (``M`` indefinite or singular) gives NaN for that state
     alone, with a gradient of exactly zero (never NaN).
     ``model``: an `AbstractLagrangian`, a [`System`][jaxlag.System], or a function ``L``.
+    Compiled once per model structure and shapes (the weights, states and ``args`` are inputs):
+    an eager call, or an eager ``jax.vmap`` of it, runs one program, reused for new weights.
     """
     system = as_system(model)
     if not isinstance(system.mass_solve, RobustSolve):
@@ -110,7 +112,11 @@ def _loss_value(loss, model, data):
 
 
 class AbstractLoss(eqx.Module):
-    """A loss ``loss(model, data) -> LossValue`` (a Module: its options are fields)."""
+    """A loss ``loss(model, data) -> LossValue`` (a Module: its options are fields).
+
+    The built-in losses compile one program per loss, model structure and data shapes when
+    called eagerly (inside ``jit`` or ``grad`` they are inlined); a subclass's ``__call__`` is
+    called as written."""
 
     def __call__(self, model: Model, data: StateData | TrajectoryData) -> LossValue:
         raise NotImplementedError
