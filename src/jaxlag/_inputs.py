@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
+from . import _compile as compilation
 from ._conventions import host_to_jax
 from ._custom_types import RealScalarLike, Validated
 from ._errors import compiled_check
@@ -135,6 +136,9 @@ class ZeroOrderHold(AbstractTimeTable):
     min_samples: ClassVar[int] = 1
 
     def __call__(self, t: RealScalarLike) -> Float[Array, " *shape"]:
+        return _table_value(self, jnp.asarray(t))
+
+    def _value(self, t: Array) -> Array:
         ts, t = self._times(t)
         index = jnp.searchsorted(ts, t, side="right") - 1
         return self.values[jnp.clip(index, 0, self.ts.shape[0] - 1)]
@@ -152,6 +156,9 @@ class PiecewiseLinear(AbstractTimeTable):
     """
 
     def __call__(self, t: RealScalarLike) -> Float[Array, " *shape"]:
+        return _table_value(self, jnp.asarray(t))
+
+    def _value(self, t: Array) -> Array:
         ts, t = self._times(t)
         path = diffrax.LinearInterpolation(ts=ts, ys=self.values)
         return path.evaluate(jnp.clip(t, ts[0], ts[-1]))
@@ -203,9 +210,20 @@ class CubicSpline(AbstractTimeTable):
         return tuple(x.reshape((n - 1, *shape)) for x in (d, c, b, a))  # pyright: ignore[reportReturnType]
 
     def __call__(self, t: RealScalarLike) -> Float[Array, " *shape"]:
+        return _table_value(self, jnp.asarray(t))
+
+    def _value(self, t: Array) -> Array:
         ts, t = self._times(t)
         path = diffrax.CubicInterpolation(ts=ts, coeffs=self.coefficients())
         return path.evaluate(jnp.clip(t, ts[0], ts[-1]))
+
+
+@compilation.filter_jit
+def _table_value(table, t):
+    """A built-in table's ``u(t)``: one program per table type and shapes when called eagerly (or
+    under an eager ``jax.vmap`` over times), instead of one per operation; inlined inside a
+    ``jit`` (the equations of motion)."""
+    return table._value(t)
 
 
 def _tables(tree) -> list[AbstractTimeTable]:
