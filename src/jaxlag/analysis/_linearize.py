@@ -119,10 +119,11 @@ def _raise_rank(kind):
     )
 
 
-def _spectrum_tol(matrix, tolerance):
+def _spectrum_tol(matrix, tolerance, xp=jnp):
     # Relative to the size of the matrix, not of its spectrum: a nilpotent block (a family of
-    # equilibria) has all eigenvalues ≈ 0, computed only to about √ε·‖A‖.
-    return tolerance * jnp.max(jnp.sum(jnp.abs(matrix), axis=1), initial=0.0) + 1e-300
+    # equilibria) has all eigenvalues ≈ 0, computed only to about √ε·‖A‖. ``xp``: NumPy on the
+    # host (`Linearization.stability`), where jax.numpy would compile a program per operation.
+    return tolerance * xp.max(xp.sum(xp.abs(matrix), axis=1), initial=0.0) + 1e-300
 
 
 class Linearization(eqx.Module):
@@ -196,19 +197,16 @@ class Linearization(eqx.Module):
     @property
     def frequencies(self) -> Float[Array, " pairs"]:
         """The ``d/2`` angular frequencies ``|Im s|`` (ascending; zeros for non-oscillating pairs)."""
-        mags = jnp.sort(jnp.abs(jnp.imag(jnp.linalg.eigvals(self.reduced_state_matrix))))
-        return mags[::2] if mags.shape[0] % 2 == 0 else mags[1::2]
+        return _frequencies(self.reduced_state_matrix)
 
     @property
     def growth_rate(self) -> Scalar:
         """``max Re s``: positive for an unstable state."""
-        return jnp.max(jnp.real(jnp.linalg.eigvals(self.reduced_state_matrix)), initial=-jnp.inf)
+        return _growth_rate(self.reduced_state_matrix)
 
     def is_stable(self, tolerance: float = 1e-6) -> Bool[Array, ""]:
         """``max Re s ≤ tol`` (spectral stability) as a boolean array (works under ``jit``)."""
-        values = jnp.linalg.eigvals(self.reduced_state_matrix)
-        tol = _spectrum_tol(self.reduced_state_matrix, tolerance)
-        return jnp.max(jnp.real(values), initial=-jnp.inf) <= tol
+        return _is_stable(self.reduced_state_matrix, jnp.asarray(tolerance, self.reduced_state_matrix.dtype))
 
     def stability(self, tolerance: float = 1e-6) -> str:
         """``"unstable"``, ``"asymptotically stable"``, ``"stable"`` or ``"marginal"`` (concrete
@@ -217,7 +215,7 @@ class Linearization(eqx.Module):
         values = np.linalg.eigvals(matrix)
         if values.size == 0:
             return "marginal"
-        tol = float(_spectrum_tol(matrix, tolerance))
+        tol = float(_spectrum_tol(matrix, tolerance, np))
         re = values.real
         if np.any(re > tol):
             return "unstable"
@@ -231,9 +229,29 @@ class Linearization(eqx.Module):
 _NO_INPUT = "No input matrix: the system has no actuation and no `inputs=` was given."
 
 
+# The spectral quantities are one program each for given shapes (called eagerly, each
+# jax.numpy operation would compile a program of its own); inside a jit they are inlined.
+@compilation.filter_jit
 def _ordered_eigenvalues(matrix):
     values = jnp.linalg.eigvals(matrix)
     return values[jnp.lexsort((jnp.real(values), jnp.imag(values)))]
+
+
+@compilation.filter_jit
+def _frequencies(matrix):
+    mags = jnp.sort(jnp.abs(jnp.imag(jnp.linalg.eigvals(matrix))))
+    return mags[::2] if mags.shape[0] % 2 == 0 else mags[1::2]
+
+
+@compilation.filter_jit
+def _growth_rate(matrix):
+    return jnp.max(jnp.real(jnp.linalg.eigvals(matrix)), initial=-jnp.inf)
+
+
+@compilation.filter_jit
+def _is_stable(matrix, tolerance):
+    values = jnp.linalg.eigvals(matrix)
+    return jnp.max(jnp.real(values), initial=-jnp.inf) <= _spectrum_tol(matrix, tolerance)
 
 
 def _input_derivative(field, args, inputs):
