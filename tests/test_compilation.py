@@ -514,3 +514,42 @@ def test_learned_data_helpers_compile_once():
         result, names = _program_names(trained)
     assert not [n for n in names if n and "stack" in n], names
     assert result.shape == (3,) and np.all(np.isfinite(result))
+
+
+def test_time_tables_and_spectra_compile_once():
+    """A time table evaluated eagerly (a plot's ``jax.vmap(u)(grid)``) and a linearization's
+    spectral quantities are one program each (before: 38 operations for a cubic spline, 21 for
+    the spectra), against closed forms: the tables interpolate ``sin`` exactly at its samples
+    and linearly between them, and the inverted pendulum's eigenvalues are ``±√g``."""
+    from jaxlag import analysis, inputs
+
+    jl.compiler_options()  # the once-per-process probe of this XLA's options, not counted below
+    ts = jnp.linspace(0.0, 1.0, 6)
+    values = jnp.sin(ts)
+    midpoints = 0.5 * (ts[1:] + ts[:-1])
+    shifted = ts + 0.05  # new times, same shape: no new program
+    for table in (
+        inputs.ZeroOrderHold(ts, values),
+        inputs.PiecewiseLinear(ts, values),
+        inputs.CubicSpline(ts, values),
+    ):
+        at_samples, names = _program_names(lambda table=table: jax.vmap(table)(ts))
+        assert len(names) == 1, names
+        np.testing.assert_allclose(at_samples, np.sin(ts), rtol=0, atol=1e-15)
+        with compilations() as count:
+            jax.block_until_ready(jax.vmap(table)(shifted))
+        assert count == [0]
+    linear = jax.vmap(inputs.PiecewiseLinear(ts, values))(midpoints)
+    np.testing.assert_allclose(linear, 0.5 * (np.sin(ts[1:]) + np.sin(ts[:-1])), rtol=0, atol=1e-15)
+
+    upright = jl.System(lambda q, qd: 0.5 * qd[0] ** 2 + 9.81 * jnp.cos(q[0]))
+    lin = analysis.linearize(upright, jnp.array([jnp.pi]), jnp.zeros(1))
+    spectra, names = _program_names(
+        lambda: (lin.eigenvalues, lin.frequencies, lin.growth_rate, lin.is_stable())
+    )
+    assert len(names) <= 5, names  # eigenvalues, frequencies, growth rate, stability (+ a tolerance array)
+    eigenvalues, frequencies, growth, stable = spectra
+    np.testing.assert_allclose(eigenvalues, [-np.sqrt(9.81), np.sqrt(9.81)], rtol=1e-12)
+    np.testing.assert_allclose(growth, np.sqrt(9.81), rtol=1e-12)
+    assert not bool(stable) and lin.stability() == "unstable"
+    np.testing.assert_allclose(frequencies, [0.0], atol=1e-12)
