@@ -19,9 +19,10 @@ controller (PID, rtol = atol = 1e-10), ``max_steps`` and save times. ``fit_demo`
 README's demo (``examples/demo.py``: ``g`` and ``R`` of a particle on a sphere from noisy camera
 positions), ``fit`` the pendulum of the fitting cookbook page. ``learned`` is a learned model's
 first steps (``jaxlag.learned``: a double pendulum's states and accelerations, a DeLaN, its first
-acceleration loss and 20 training steps), to compare against a baseline checkout. Each row also gives the CPU time of
-the process (all its threads), which a shared machine disturbs less than the wall clock; steps
-named ``after: ...`` (a second call, for its run time) are left out of the totals.
+acceleration loss and 20 training steps), to compare against a baseline checkout. Each row also
+gives the CPU time of the process (all its threads), which a shared machine disturbs less than
+the wall clock; steps named ``after: ...`` (a second call, for its run time) are left out of the
+totals.
 
     python -m benchmarks.bench_first_result            # all stages, about 3-5 minutes
     python -m benchmarks.bench_first_result readme fit   # some stages
