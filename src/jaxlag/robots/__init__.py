@@ -19,7 +19,9 @@ velocity of the link's origin, then the angular velocity in the link's frame); s
 
 Reading files needs MuJoCo's model compiler, the ``robots`` extra (``pip install
 "jaxlag[robots]"``); nothing else here does. Every function is differentiable and works under
-``jit`` and ``vmap``; the inertial parameters are arrays of the tree. `system` turns the tree
+``jit`` and ``vmap``; the inertial parameters are arrays of the tree. Called eagerly, each
+function compiles one program per tree structure and shapes, reused for new states and
+parameters. `system` turns the tree
 into a [`jaxlag.System`][jaxlag.System] (``L = T − V``, quaternions with ``|Q|² = 1``), whose
 ``M`` and forces come from these recursive algorithms (`TreeDynamics`).
 """

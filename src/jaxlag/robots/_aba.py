@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from .. import _compile as compilation
 from ._kinematics import as_state, world_motion
 from ._recursion import ascend, descend
 from ._spatial import force_cross, motion_cross, motion_transform, spatial_inertia
@@ -34,6 +35,11 @@ def forward_dynamics(
     q = as_state(tree, q, "q")
     v = as_state(tree, v)
     tau = jnp.zeros_like(v) if force is None else as_state(tree, force)
+    return _forward_dynamics(tree, q, v, tau)
+
+
+@compilation.filter_jit
+def _forward_dynamics(tree, q, v, tau):
     lay = layout(tree)
     motion = joint_motion(tree, q)
     transform = motion_transform(motion.rotation, motion.translation)

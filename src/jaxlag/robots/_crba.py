@@ -3,6 +3,7 @@ r"""The composite-rigid-body algorithm: the joint-space mass matrix ``M(q)``."""
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from .. import _compile as compilation
 from ._kinematics import as_state, world_poses
 from ._spatial import inverse_motion_transform, motion_transform, spatial_inertia
 from ._tree import KinematicTree, joint_motion, layout
@@ -22,7 +23,14 @@ def mass_matrix(tree: KinematicTree, q: Float[ArrayLike, " nq"]) -> Float[Array,
     The sums over subtrees and the products are dense masked products (``links²`` and ``nv²``
     entries), which cost less than a recursion for trees of a few hundred links.
     """
-    q = as_state(tree, q, "q")
+    return _mass_matrix(tree, as_state(tree, q, "q"))
+
+
+# Like every public function here, one program per tree structure and shapes (the tree's
+# parameters and the state are inputs): called eagerly, each operation would compile a program
+# of its own (117 for a 7-joint arm's M); inside a jit (a robot's equations of motion) inlined.
+@compilation.filter_jit
+def _mass_matrix(tree, q):
     lay = layout(tree)
     motion = joint_motion(tree, q)
     poses = world_poses(tree, motion)

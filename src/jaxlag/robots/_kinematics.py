@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .. import _compile as compilation
 from ._spatial import inverse_motion_transform, motion_transform
 from ._tree import JointMotion, KinematicTree, joint_motion, layout, padded
 
@@ -76,7 +77,11 @@ def forward_kinematics(tree: KinematicTree, q: Float[ArrayLike, " nq"]) -> LinkP
     The link's frame composes, from the world down, each link's placement in its parent and its
     joint's motion: ``R_i = R_{parent} R_{i/parent}``, ``p_i = p_{parent} + R_{parent} p_{i/parent}``.
     """
-    q = as_state(tree, q, "q")
+    return _forward_kinematics(tree, as_state(tree, q, "q"))
+
+
+@compilation.filter_jit
+def _forward_kinematics(tree, q):
     return world_poses(tree, joint_motion(tree, q))
 
 
@@ -96,8 +101,11 @@ def configuration_rate(
     r"""``q̇`` from the velocity ``v``: ``θ̇ = v`` for hinges and slides; ``Q̇ = ½ Q ⊗ (0, ω)``
     for a ball's quaternion (``ω`` in the link's frame); ``(ṗ, Q̇) = (v_world, ½ Q ⊗ (0, ω))`` for a
     free joint."""
-    q = as_state(tree, q, "q")
-    v = as_state(tree, v)
+    return _configuration_rate(tree, as_state(tree, q, "q"), as_state(tree, v))
+
+
+@compilation.filter_jit
+def _configuration_rate(tree, q, v):
     lay = layout(tree)
     qadr = np.asarray(tree.q_addresses, dtype=np.int32)
     vadr = np.asarray(tree.v_addresses, dtype=np.int32)

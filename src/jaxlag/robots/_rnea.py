@@ -3,6 +3,7 @@ r"""Newton–Euler: inverse dynamics and the bias forces ``C(q, v) v + g(q)``.""
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from .. import _compile as compilation
 from ._kinematics import as_state, world_motion
 from ._spatial import force_cross, inverse_motion_transform, motion_cross, spatial_inertia
 from ._tree import KinematicTree, joint_bias, joint_motion, layout, padded, unpadded
@@ -53,8 +54,11 @@ def bias_forces(
 
     With them, the equation of motion is ``M(q) v̇ + C(q, v) v + g(q) = τ − damping · v``.
     """
-    q = as_state(tree, q, "q")
-    v = as_state(tree, v)
+    return _bias_forces(tree, as_state(tree, q, "q"), as_state(tree, v))
+
+
+@compilation.filter_jit
+def _bias_forces(tree, q, v):
     return _newton_euler(tree, q, v, jnp.zeros_like(v))
 
 
@@ -68,7 +72,10 @@ def inverse_dynamics(
     ``τ = M(q) v̇ + C(q, v) v + g(q) + damping · v`` (armature included in ``M``), the exact
     inverse of [`forward_dynamics`][jaxlag.robots.forward_dynamics]. Newton–Euler.
     """
-    q = as_state(tree, q, "q")
-    v = as_state(tree, v)
-    acceleration = as_state(tree, acceleration)
+    states = as_state(tree, q, "q"), as_state(tree, v), as_state(tree, acceleration)
+    return _inverse_dynamics(tree, *states)
+
+
+@compilation.filter_jit
+def _inverse_dynamics(tree, q, v, acceleration):
     return _newton_euler(tree, q, v, acceleration) + tree.armature * acceleration + tree.damping * v
