@@ -608,3 +608,51 @@ def test_articulated_body_dynamics_moves_alike_under_grad():
         rtol=1e-9,
         atol=1e-12,
     )
+
+
+PENDULUM_BOB = f"""<mujoco>{_NO_CONTACT}<worldbody>
+  <body name="bob"><joint type="hinge" axis="0 1 0"/>
+    <inertial pos="0 0 -0.8" mass="1.5" diaginertia="0.01 0.02 0.03"/></body>
+</worldbody></mujoco>"""
+
+
+def test_public_functions_compile_once():
+    """``mass_matrix``, ``bias_forces``, ``inverse_dynamics``, ``forward_dynamics``,
+    ``forward_kinematics`` and ``configuration_rate`` called eagerly are one program each (a
+    7-joint arm's mass matrix was 117 programs), reused for a new state. Against the closed form
+    of a bob of mass m at l below a hinge about y: ``M = I_yy + m l²``, ``g(q) = m g l sin q``,
+    so ``v̇ = −m g l sin q / M``, and the bob's frame rotated by ``q`` about y."""
+    names = []
+
+    def listen(event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            names.append(kwargs.get("fun_name"))
+
+    tree = jlr.load(PENDULUM_BOB)
+    q, other, v = jnp.array([0.4]), jnp.array([-1.1]), jnp.array([0.7])
+    acceleration_in, zero = jnp.array([0.3]), jnp.zeros(1)
+    inertia, m, l, g = 0.02, 1.5, 0.8, 9.81
+    jax.block_until_ready(jlr.mass_matrix(tree, other))  # the options probe and conversions
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        mass = jlr.mass_matrix(tree, q)
+        bias = jlr.bias_forces(tree, q, v)
+        tau = jlr.inverse_dynamics(tree, q, v, acceleration_in)
+        acceleration = jlr.forward_dynamics(tree, q, v, zero)
+        poses = jlr.forward_kinematics(tree, q)
+        rate = jlr.configuration_rate(tree, q, v)
+        jax.block_until_ready((mass, bias, tau, acceleration, poses, rate))
+        per_function = len(names)
+        jax.block_until_ready((jlr.mass_matrix(tree, other), jlr.bias_forces(tree, other, v)))
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert per_function <= 5, names  # mass_matrix's program is reused; one for each other function
+    assert len(names) == per_function, names  # a new state compiles nothing
+    total = inertia + m * l**2
+    np.testing.assert_allclose(mass, [[total]], rtol=1e-12)
+    np.testing.assert_allclose(bias, [m * g * l * np.sin(0.4)], rtol=1e-12)
+    np.testing.assert_allclose(tau, [total * 0.3 + m * g * l * np.sin(0.4)], rtol=1e-12)
+    np.testing.assert_allclose(acceleration, [-m * g * l * np.sin(0.4) / total], rtol=1e-12)
+    c, s = np.cos(0.4), np.sin(0.4)
+    np.testing.assert_allclose(poses.rotation[0], [[c, 0, s], [0, 1, 0], [-s, 0, c]], atol=1e-14)
+    np.testing.assert_allclose(rate, v, rtol=0)
