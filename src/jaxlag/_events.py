@@ -49,6 +49,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from . import _compile as compilation
 from ._conventions import UserFunction, wrap_event_function, wrap_state_function
 from ._custom_types import Validated
 
@@ -363,6 +364,23 @@ def multiplier_limit(index: int, limit: float, terminal: bool = True, below: boo
     return Event(condition, terminal=terminal, direction=not below)
 
 
+@compilation.filter_jit  # one program per shapes (eagerly, each operation would be one)
+def _impact_times(time, kind, row, size, index):
+    """`EventLog.impact_times`: ``size`` and ``index`` are static Python ints."""
+    hit = (kind == EventKind.IMPACT) | (kind == EventKind.CONTACT)
+    if index is not None:
+        hit = hit & (row == index)
+    # The entries are in time order: a stable sort on "not a hit" moves the hits to the front in
+    # their order, the rest (set to inf) behind them.
+    order = jnp.argsort(~hit, axis=-1, stable=True)
+    times = jnp.take_along_axis(jnp.where(hit, time, jnp.inf), order, axis=-1)
+    length = times.shape[-1]
+    if size > length:
+        padding = jnp.full((*times.shape[:-1], size - length), jnp.inf, times.dtype)
+        return jnp.concatenate([times, padding], axis=-1)
+    return times[..., :size]
+
+
 class EventLog(eqx.Module):
     """What happened at the end of each segment: arrays of ``max_segments`` entries (with the
     batch axes first for a log from ``jax.vmap``), in the order the segments ran.
@@ -422,22 +440,11 @@ class EventLog(eqx.Module):
 
         (``inf``, with a zero derivative, if the run had fewer impacts than asked for.) A batched
         log (from ``jax.vmap``) gives one row per member."""
-        time, kind, row = self.time, self.kind, self.index
-        hit = (kind == EventKind.IMPACT) | (kind == EventKind.CONTACT)
-        if index is not None:
-            hit = hit & (row == index)
-        # The entries are in time order: a stable sort on "not a hit" moves the hits to the
-        # front in their order, the rest (set to inf) behind them.
-        order = jnp.argsort(~hit, axis=-1, stable=True)
-        times = jnp.take_along_axis(jnp.where(hit, time, jnp.inf), order, axis=-1)
-        length = times.shape[-1]
-        size = length if size is None else int(size)
+        size = self.time.shape[-1] if size is None else int(size)
         if size < 0:
             raise ValueError(f"impact_times: size must be a non-negative int; got {size}.")
-        if size > length:
-            padding = jnp.full((*times.shape[:-1], size - length), jnp.inf, times.dtype)
-            return jnp.concatenate([times, padding], axis=-1)
-        return times[..., :size]
+        index = None if index is None else int(index)
+        return _impact_times(self.time, self.kind, self.index, size, index)
 
     def kinds(self) -> list[str] | list[list[str]]:
         """The names of the real entries (``"release"``, ``"contact"``, ``"impact"``,
