@@ -71,7 +71,7 @@ PRELUDE = textwrap.dedent('''
     def _site():
         """Innermost frame in src/jaxlag/ (not jaxlag's jit wrapper) and the outermost, else None."""
         frames = [f for f in traceback.extract_stack() if "/src/jaxlag/" in f.filename.replace(os.sep, "/")
-                  and not (f.filename.endswith(("_compile.py", "_fit/lean.py"))
+                  and not (f.filename.endswith("_compile.py")
                           and f.name in ("__call__", "lower"))]
         def fmt(f):
             path = f.filename.replace(os.sep, "/")

@@ -21,7 +21,6 @@ from jax.flatten_util import ravel_pytree
 
 from .. import _compile as compilation
 from .._adjoint import ForwardSensitivities
-from .lean import lean_jit
 from .model import Linearization, Linearizer, Problem
 
 
@@ -116,13 +115,13 @@ def _probe(free, linearization: Linearization):
     return linearization.jacobian @ (y - jax.lax.stop_gradient(y)), None
 
 
-@lean_jit
+@compilation.lean_jit
 def _ls_init(solver, free, linearization):
     f_struct, aux_struct = jax.eval_shape(_linear_model, free, linearization)
     return solver.init(_linear_model, free, linearization, {}, f_struct, aux_struct, frozenset())
 
 
-@lean_jit
+@compilation.lean_jit
 def _ls_step(solver, free, state, linearization: Linearization):
     """One optimistix step on the linearization at its trial point, in one program.
 

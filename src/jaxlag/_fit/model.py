@@ -36,7 +36,6 @@ from .._stabilization import (
     projection_with_residuals,
 )
 from .data import Data
-from .lean import lean_jit
 from .options import Identity
 
 
@@ -341,7 +340,7 @@ def _linearize(model, free, data, fixed_states):
     return _linearization(model, free, data, fixed_states, batched=True)
 
 
-@lean_jit
+@compilation.lean_jit
 def _linearize_lean(model, free, data, fixed_states):
     """`residuals_and_jacobian` for a fit whose calls are cheap, compiled for the time to the first
     result: one tangent at a time (``lax.map`` of ``jvp``, traced once: the batching of diffrax's

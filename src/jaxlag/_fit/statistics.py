@@ -22,7 +22,6 @@ from .._custom_types import Scalar
 from .combinations import IdentifiableCombination, identifiable_combinations
 from .data import save_times
 from .diagnostics import gross_outliers, misfit
-from .lean import lean_jit
 from .loops import Search
 from .model import Problem, residuals_and_jacobian
 from .options import Bounded, FitWarning, SegmentStates
@@ -179,7 +178,7 @@ def fit_result(problem: Problem, search: Search, noise_std: float | None) -> Fit
     )
 
 
-@lean_jit
+@compilation.lean_jit
 def _summary(model, free, fixed_states, jac_free):
     """At the optimum, in one program: the physical parameters, the Jacobian of the weighted
     residuals with respect to the physical parameters (then the free segment states), their
