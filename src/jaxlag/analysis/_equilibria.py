@@ -141,7 +141,7 @@ def _static_multipliers(system, layout, q, qd, t, args):
     return -jnp.linalg.solve(g @ g.T, g @ force)
 
 
-@compilation.filter_jit
+@compilation.lean_jit
 def _solve(system, q0, qd0, t, args, target, layout, solver, max_steps, tolerance):
     if layout.momentum_indices:
         # Start the unknown velocities on the prescribed momenta at the guessed q: one Newton
