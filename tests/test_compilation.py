@@ -553,3 +553,26 @@ def test_time_tables_and_spectra_compile_once():
     np.testing.assert_allclose(growth, np.sqrt(9.81), rtol=1e-12)
     assert not bool(stable) and lin.stability() == "unstable"
     np.testing.assert_allclose(frequencies, [0.0], atol=1e-12)
+
+
+def test_one_shot_analyses_compile_lean_and_agree():
+    """An eager ``linearize`` and ``equilibrium`` compile without LLVM's optimizations on the CPU
+    (``lean_jit``: they run once per state), inside ``jit`` with the optimized options; both
+    give the double pendulum's rest state and its normal modes ``ω² = (2 ∓ √2) g/l``."""
+    from jaxlag import analysis
+    from jaxlag.analysis import _equilibria, _linearize
+
+    system = jl.systems.double_pendulum()
+    guess = jnp.array([0.3, -0.2])
+    rest = analysis.equilibrium(system, guess)
+    lin = analysis.linearize(system, rest.q)
+    if jl.compiler_options():  # on the CPU: the lean programs were the ones compiled
+        assert _equilibria._solve._lean and _linearize._linearize._lean
+    np.testing.assert_allclose(rest.q, [0.0, 0.0], atol=1e-12)
+    g = jl.systems.default_args(jl.systems.double_pendulum)["g"]  # unit masses and rods
+    expected = np.sqrt(np.array([2.0 - np.sqrt(2.0), 2.0 + np.sqrt(2.0)]) * g)
+    np.testing.assert_allclose(lin.frequencies, expected, rtol=1e-10)
+    optimized = eqx.filter_jit(lambda q: analysis.linearize(system, q).state_matrix)(rest.q)
+    np.testing.assert_allclose(lin.state_matrix, optimized, rtol=1e-12, atol=1e-12)
+    jitted_rest = eqx.filter_jit(lambda q: analysis.equilibrium(system, q).q)(guess)
+    np.testing.assert_allclose(jitted_rest, rest.q, atol=1e-12)
