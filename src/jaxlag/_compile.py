@@ -118,6 +118,17 @@ def no_transformation_active() -> bool:
     return kinds is not None and all(kind == "EvalTrace" for kind in kinds)
 
 
+def _traced_under(fn, choice):
+    """``fn``, traced with the compiled checks' ``choice`` in force (`jaxlag._errors.on_failure`)."""
+
+    @functools.wraps(fn)
+    def traced(*args, **kwargs):
+        with on_failure(choice):
+            return fn(*args, **kwargs)
+
+    return traced
+
+
 class _BackendJit:
     """``eqx.filter_jit(fn)`` that compiles with `compiler_options` of the default backend.
 
@@ -162,13 +173,7 @@ class _BackendJit:
         """The wrapper without options, tracing the function under ``choice``."""
         wrapper = self._wrappers.get((False, choice))  # no options
         if wrapper is None:
-            fn = self._fn
-
-            @functools.wraps(fn)
-            def traced(*args, **kwargs):
-                with on_failure(choice):
-                    return fn(*args, **kwargs)
-
+            traced = _traced_under(self._fn, choice)
             wrapper = self._wrappers[(False, choice)] = eqx.filter_jit(traced, **self._jitkwargs)
         return wrapper
 
@@ -235,15 +240,8 @@ class _LeanJit:
         key = (tuple(sorted(options.items())), choice)
         wrapper = self._lean.get(key)
         if wrapper is None:
-            fn = self._fn
-
-            @functools.wraps(fn)
-            def traced(*args, **kwargs):
-                with on_failure(choice):
-                    return fn(*args, **kwargs)
-
             jitkwargs: dict[str, Any] = {"compiler_options": {**options, **LEAN_CPU_OPTIONS}}
-            wrapper = eqx.filter_jit(traced, **jitkwargs)
+            wrapper = eqx.filter_jit(_traced_under(self._fn, choice), **jitkwargs)
             self._lean[key] = wrapper
         return wrapper
 
