@@ -366,7 +366,8 @@ def multiplier_limit(index: int, limit: float, terminal: bool = True, below: boo
 
 @compilation.filter_jit  # one program per shapes (eagerly, each operation would be one)
 def _impact_times(time, kind, row, size, index):
-    """`EventLog.impact_times`: ``size`` and ``index`` are static Python ints."""
+    """`EventLog.impact_times`: ``size`` is a static Python int; ``index`` a Python int (static)
+    or an array (an input of the program, e.g. traced)."""
     hit = (kind == EventKind.IMPACT) | (kind == EventKind.CONTACT)
     if index is not None:
         hit = hit & (row == index)
@@ -443,7 +444,6 @@ class EventLog(eqx.Module):
         size = self.time.shape[-1] if size is None else int(size)
         if size < 0:
             raise ValueError(f"impact_times: size must be a non-negative int; got {size}.")
-        index = None if index is None else int(index)
         return _impact_times(self.time, self.kind, self.index, size, index)
 
     def kinds(self) -> list[str] | list[list[str]]:
