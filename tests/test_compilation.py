@@ -554,6 +554,31 @@ def test_time_tables_and_spectra_compile_once():
     assert not bool(stable) and lin.stability() == "unstable"
     np.testing.assert_allclose(frequencies, [0.0], atol=1e-12)
 
+    # The closed loop of a torque-driven pendulum θ̈ = −g sin θ + u under u = −k θ − c θ̇ about
+    # θ = 0: A + B F = [[0, 1], [−g − k, −c]], one program each for the full and reduced matrix,
+    # and merging a table's breakpoints into a controller is one program too (before: 3 each).
+    k, c = 4.0, 1.5
+    driven = jl.System(
+        lambda q, qd: 0.5 * qd[0] ** 2 + 9.81 * jnp.cos(q[0]),
+        actuation=lambda q, qd, u: jnp.reshape(u, (1,)),
+        control=lambda q, qd: -k * q[0] - c * qd[0],
+    )
+    closed = analysis.linearize(driven, jnp.zeros(1), jnp.zeros(1))
+    (full, reduced), names = _program_names(
+        lambda: (closed.closed_loop_matrix, closed.reduced_closed_loop_matrix)
+    )
+    assert len(names) == 2, names
+    expected = np.array([[0.0, 1.0], [-9.81 - k, -c]])
+    np.testing.assert_allclose(full, expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(reduced, expected, rtol=0, atol=1e-12)  # E = I: no constraint
+    hold = inputs.ZeroOrderHold(ts, values)
+    line = inputs.PiecewiseLinear(shifted, values)
+    base = diffrax.PIDController(rtol=1e-8, atol=1e-8)
+    merged, names = _program_names(lambda: inputs.with_breakpoints(base, {"u": hold, "w": line}))
+    assert len(names) <= 2, names  # the jump times and the step times
+    np.testing.assert_array_equal(merged.jump_ts, ts)
+    np.testing.assert_array_equal(merged.step_ts, shifted)
+
 
 def test_one_shot_analyses_compile_lean_and_agree():
     """An eager ``linearize`` and ``equilibrium`` compile without LLVM's optimizations on the CPU

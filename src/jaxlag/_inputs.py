@@ -259,6 +259,12 @@ def with_breakpoints(
     return _clip(controller, found, None)
 
 
+@compilation.filter_jit  # one program per shapes (eagerly, each operation would be one)
+def _merged_times(times, dtype):
+    out = jnp.concatenate([jnp.ravel(x) for x in times])
+    return out if dtype is None else out.astype(dtype)
+
+
 def _clip(controller, tables, dtype):
     jumps = [t.breakpoints for t in tables if t.discontinuous]
     steps = [t.breakpoints for t in tables if not t.discontinuous]
@@ -271,10 +277,7 @@ def _clip(controller, tables, dtype):
             steps.append(controller.step_ts)
 
     def merge(times):
-        if not times:
-            return None
-        out = jnp.concatenate([jnp.ravel(x) for x in times])
-        return out if dtype is None else out.astype(dtype)
+        return _merged_times(tuple(times), dtype) if times else None
 
     store, callback = None, None
     if isinstance(controller, diffrax.ClipStepSizeController):

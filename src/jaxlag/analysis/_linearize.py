@@ -161,7 +161,7 @@ class Linearization(eqx.Module):
     @property
     def closed_loop_matrix(self) -> Float[Array, "two_n two_n"]:
         """``A + B F``: the state matrix with the control law's feedback ``δu = F δy``."""
-        return self.state_matrix + self._feedback_input() @ self._feedback()
+        return _closed_loop(self.state_matrix, self._feedback_input(), self._feedback(), None)
 
     @property
     def reduced_closed_loop_matrix(self) -> Float[Array, "d d"]:
@@ -169,7 +169,7 @@ class Linearization(eqx.Module):
         reduced_input = self.reduced_input_matrix
         if reduced_input is None:
             raise ValueError(_NO_INPUT)
-        return self.reduced_state_matrix + reduced_input @ (self._feedback() @ self.basis)
+        return _closed_loop(self.reduced_state_matrix, reduced_input, self._feedback(), self.basis)
 
     @property
     def closed_loop_eigenvalues(self) -> Complex[Array, " d"]:
@@ -235,6 +235,13 @@ _NO_INPUT = "No input matrix: the system has no actuation and no `inputs=` was g
 def _ordered_eigenvalues(matrix):
     values = jnp.linalg.eigvals(matrix)
     return values[jnp.lexsort((jnp.real(values), jnp.imag(values)))]
+
+
+@compilation.filter_jit
+def _closed_loop(state_matrix, input_matrix, feedback, basis):
+    """``A + B F`` (``basis`` None), or ``A_T + B_T F E`` on the tangent space."""
+    gain = feedback if basis is None else feedback @ basis
+    return state_matrix + input_matrix @ gain
 
 
 @compilation.filter_jit
