@@ -519,8 +519,10 @@ def test_learned_data_helpers_compile_once():
 def test_time_tables_and_spectra_compile_once():
     """A time table evaluated eagerly (a plot's ``jax.vmap(u)(grid)``) and a linearization's
     spectral quantities are one program each (before: 38 operations for a cubic spline, 21 for
-    the spectra), against closed forms: the tables interpolate ``sin`` exactly at its samples
-    and linearly between them, and the inverted pendulum's eigenvalues are ``±√g``."""
+    the spectra), and so are the closed-loop matrices and ``with_breakpoints``' merge, against
+    closed forms: the tables interpolate ``sin`` exactly at its samples and linearly between
+    them, the inverted pendulum's eigenvalues are ``±√g``, and a torque-driven pendulum under
+    ``u = −kθ − cθ̇`` has ``A + B F = [[0, 1], [−g − k, −c]]``."""
     from jaxlag import analysis, inputs
 
     jl.compiler_options()  # the once-per-process probe of this XLA's options, not counted below
